@@ -1,0 +1,235 @@
+//! Dense image and feature-map buffers.
+//!
+//! Layout: `H × W × C`, row-major, channels interleaved: the value of channel `c` at pixel
+//! `(x = col, y = row)` is `data[(y * W + x) * C + c]`. RGB images are `Image<f32>` with three
+//! channels in `[0, 1]` (linear 8-bit values divided by 255, no gamma change); depth maps are
+//! single-channel `Image<f32>` in metres; NeRF and encoder features are [`FeatureMap`]s.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// Errors raised when building a buffer from raw parts.
+#[derive(Debug, Error, Clone, PartialEq, Eq)]
+pub enum ImageError {
+    /// The data length does not equal `width * height * channels`.
+    #[error("buffer of {width}x{height}x{channels} needs {expected} values, got {actual}")]
+    SizeMismatch {
+        /// Width in pixels.
+        width: usize,
+        /// Height in pixels.
+        height: usize,
+        /// Channels per pixel.
+        channels: usize,
+        /// `width * height * channels`.
+        expected: usize,
+        /// Length of the data given.
+        actual: usize,
+    },
+    /// Two buffers that must agree in shape do not.
+    #[error("shape mismatch: {a:?} vs {b:?} (width, height, channels)")]
+    ShapeMismatch {
+        /// Shape of the first buffer.
+        a: (usize, usize, usize),
+        /// Shape of the second buffer.
+        b: (usize, usize, usize),
+    },
+}
+
+/// An `H × W × C` row-major buffer (see the module docs for the layout).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Image<T> {
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: Vec<T>,
+}
+
+/// A dense feature map: an [`Image<f32>`] whose channels are feature dimensions.
+pub type FeatureMap = Image<f32>;
+
+impl<T: Copy + Default> Image<T> {
+    /// A buffer filled with `T::default()`.
+    pub fn new(width: usize, height: usize, channels: usize) -> Self {
+        Image {
+            width,
+            height,
+            channels,
+            data: vec![T::default(); width * height * channels],
+        }
+    }
+}
+
+impl<T> Image<T> {
+    /// Wraps existing data, checking its length.
+    pub fn from_vec(
+        width: usize,
+        height: usize,
+        channels: usize,
+        data: Vec<T>,
+    ) -> Result<Self, ImageError> {
+        let expected = width * height * channels;
+        if data.len() != expected {
+            return Err(ImageError::SizeMismatch {
+                width,
+                height,
+                channels,
+                expected,
+                actual: data.len(),
+            });
+        }
+        Ok(Image {
+            width,
+            height,
+            channels,
+            data,
+        })
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Channels per pixel.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// `(width, height, channels)`.
+    pub fn shape(&self) -> (usize, usize, usize) {
+        (self.width, self.height, self.channels)
+    }
+
+    /// All values in layout order.
+    pub fn data(&self) -> &[T] {
+        &self.data
+    }
+
+    /// All values in layout order, mutable.
+    pub fn data_mut(&mut self) -> &mut [T] {
+        &mut self.data
+    }
+
+    /// Consumes the buffer and returns its data.
+    pub fn into_vec(self) -> Vec<T> {
+        self.data
+    }
+
+    /// The channels of pixel `(x, y)`. Panics when out of bounds, like slice indexing.
+    pub fn pixel(&self, x: usize, y: usize) -> &[T] {
+        let i = (y * self.width + x) * self.channels;
+        &self.data[i..i + self.channels]
+    }
+
+    /// The channels of pixel `(x, y)`, mutable.
+    pub fn pixel_mut(&mut self, x: usize, y: usize) -> &mut [T] {
+        let i = (y * self.width + x) * self.channels;
+        &mut self.data[i..i + self.channels]
+    }
+
+    /// One row (`W × C` values).
+    pub fn row(&self, y: usize) -> &[T] {
+        let n = self.width * self.channels;
+        &self.data[y * n..(y + 1) * n]
+    }
+
+    /// Checks that another buffer has the same shape.
+    pub fn check_same_shape<U>(&self, other: &Image<U>) -> Result<(), ImageError> {
+        if self.shape() != other.shape() {
+            return Err(ImageError::ShapeMismatch {
+                a: self.shape(),
+                b: other.shape(),
+            });
+        }
+        Ok(())
+    }
+}
+
+impl<T: Copy + Default> Image<T> {
+    /// A new buffer holding the listed channels, in the order given.
+    ///
+    /// Panics if a channel index is out of range (a programming error, not user input).
+    pub fn select_channels(&self, channels: &[usize]) -> Image<T> {
+        let mut out = Image::new(self.width, self.height, channels.len());
+        for (src, dst) in self
+            .data
+            .chunks_exact(self.channels.max(1))
+            .zip(out.data.chunks_exact_mut(channels.len().max(1)))
+        {
+            for (d, &c) in dst.iter_mut().zip(channels) {
+                *d = src[c];
+            }
+        }
+        out
+    }
+}
+
+impl Image<f32> {
+    /// Bilinear sample at a continuous pixel coordinate (pixel centres at `+0.5`), clamped at
+    /// the border; writes `channels` values into `out`.
+    pub fn sample_bilinear(&self, x: f64, y: f64, out: &mut [f32]) {
+        let fx = (x - 0.5).clamp(0.0, (self.width - 1) as f64);
+        let fy = (y - 0.5).clamp(0.0, (self.height - 1) as f64);
+        let x0 = fx.floor() as usize;
+        let y0 = fy.floor() as usize;
+        let x1 = (x0 + 1).min(self.width - 1);
+        let y1 = (y0 + 1).min(self.height - 1);
+        let ax = (fx - x0 as f64) as f32;
+        let ay = (fy - y0 as f64) as f32;
+        let (p00, p10, p01, p11) = (
+            self.pixel(x0, y0),
+            self.pixel(x1, y0),
+            self.pixel(x0, y1),
+            self.pixel(x1, y1),
+        );
+        for c in 0..self.channels {
+            let top = p00[c] + ax * (p10[c] - p00[c]);
+            let bottom = p01[c] + ax * (p11[c] - p01[c]);
+            out[c] = top + ay * (bottom - top);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn layout_is_row_major_interleaved() {
+        let img = Image::from_vec(3, 2, 2, (0..12).collect::<Vec<i32>>()).unwrap();
+        assert_eq!(img.pixel(0, 0), &[0, 1]);
+        assert_eq!(img.pixel(2, 0), &[4, 5]);
+        assert_eq!(img.pixel(0, 1), &[6, 7]);
+        assert_eq!(img.row(1), &[6, 7, 8, 9, 10, 11]);
+        assert_eq!(img.select_channels(&[1]).data(), &[1, 3, 5, 7, 9, 11]);
+    }
+
+    #[test]
+    fn wrong_length_is_an_error() {
+        assert!(matches!(
+            Image::from_vec(3, 2, 2, vec![0u8; 11]),
+            Err(ImageError::SizeMismatch {
+                expected: 12,
+                actual: 11,
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn bilinear_hits_pixel_centres_and_midpoints() {
+        let img = Image::from_vec(2, 1, 1, vec![0.0f32, 1.0]).unwrap();
+        let mut v = [0.0f32];
+        img.sample_bilinear(0.5, 0.5, &mut v);
+        assert_eq!(v[0], 0.0);
+        img.sample_bilinear(1.0, 0.5, &mut v);
+        assert!((v[0] - 0.5).abs() < 1e-6);
+        img.sample_bilinear(10.0, 0.5, &mut v);
+        assert_eq!(v[0], 1.0);
+    }
+}

@@ -1,0 +1,219 @@
+//! Error metrics: pose errors, recall at thresholds, PSNR and SSIM.
+
+use crate::image::{Image, ImageError};
+use crate::pose::{Pose, camera_center};
+
+/// Distance between the camera centres of two `cam_from_world` poses, in scene units (metres).
+pub fn translation_error_m(cam_from_world_est: &Pose, cam_from_world_gt: &Pose) -> f64 {
+    (camera_center(cam_from_world_est) - camera_center(cam_from_world_gt)).norm()
+}
+
+/// Geodesic angle of `R_est R_gtᵀ`, in degrees.
+pub fn rotation_error_deg(cam_from_world_est: &Pose, cam_from_world_gt: &Pose) -> f64 {
+    cam_from_world_est
+        .rotation
+        .angle_to(&cam_from_world_gt.rotation)
+        .to_degrees()
+}
+
+/// Fraction of queries whose errors are both within `(max_translation_m, max_rotation_deg)`.
+///
+/// `errors` holds `(translation_m, rotation_deg)` per query; a failed query should be passed
+/// as `(f64::INFINITY, f64::INFINITY)` so it counts against recall. Empty input gives 0.
+pub fn recall_at(errors: &[(f64, f64)], max_translation_m: f64, max_rotation_deg: f64) -> f64 {
+    if errors.is_empty() {
+        return 0.0;
+    }
+    let hits = errors
+        .iter()
+        .filter(|(t, r)| *t <= max_translation_m && *r <= max_rotation_deg)
+        .count();
+    hits as f64 / errors.len() as f64
+}
+
+/// Median of a slice (NaNs sort last); `None` for empty input.
+pub fn median(values: &[f64]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut v = values.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
+}
+
+/// Peak signal-to-noise ratio in dB for images with values in `[0, 1]`.
+///
+/// Identical images give `f64::INFINITY`.
+pub fn psnr(a: &Image<f32>, b: &Image<f32>) -> Result<f64, ImageError> {
+    a.check_same_shape(b)?;
+    let n = a.data().len().max(1) as f64;
+    let mse: f64 = a
+        .data()
+        .iter()
+        .zip(b.data())
+        .map(|(&x, &y)| {
+            let d = x as f64 - y as f64;
+            d * d
+        })
+        .sum::<f64>()
+        / n;
+    Ok(-10.0 * mse.log10())
+}
+
+/// Side of the SSIM Gaussian window (Wang et al. 2004).
+const SSIM_WINDOW: usize = 11;
+/// Standard deviation of the SSIM Gaussian window, pixels.
+const SSIM_SIGMA: f64 = 1.5;
+
+/// Structural similarity (Wang et al. 2004) for images with values in `[0, 1]`.
+///
+/// Standard settings: 11×11 Gaussian window with σ = 1.5 (normalised), K1 = 0.01, K2 = 0.03,
+/// statistics over the window positions that fit entirely in the image ("valid"), mean over
+/// positions and then over channels. This equals scikit-image's `structural_similarity` with
+/// `gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1`. Images smaller
+/// than the window give an error-free result computed with the window clipped to the image.
+pub fn ssim(a: &Image<f32>, b: &Image<f32>) -> Result<f64, ImageError> {
+    a.check_same_shape(b)?;
+    let (w, h, ch) = a.shape();
+    if w == 0 || h == 0 || ch == 0 {
+        return Ok(1.0);
+    }
+    let radius = SSIM_WINDOW / 2;
+    let kernel: Vec<f64> = {
+        let k: Vec<f64> = (0..SSIM_WINDOW)
+            .map(|i| {
+                let d = i as f64 - radius as f64;
+                (-d * d / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
+            })
+            .collect();
+        let s: f64 = k.iter().sum();
+        k.into_iter().map(|v| v / s).collect()
+    };
+    let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
+    // Window positions: valid region, or the single clipped position for tiny images.
+    let (wx, wy) = (w.min(SSIM_WINDOW), h.min(SSIM_WINDOW));
+    let (nx, ny) = (w - wx + 1, h - wy + 1);
+    let kx: Vec<f64> = normalised_slice(&kernel, wx);
+    let ky: Vec<f64> = normalised_slice(&kernel, wy);
+
+    let mut total = 0.0;
+    for c in 0..ch {
+        // Separable filtering of the five moment images: rows first, then columns.
+        let get = |img: &Image<f32>, x: usize, y: usize| img.data()[(y * w + x) * ch + c] as f64;
+        let mut rows = vec![[0.0f64; 5]; nx * h];
+        for y in 0..h {
+            for ox in 0..nx {
+                let mut m = [0.0f64; 5];
+                for (i, &k) in kx.iter().enumerate() {
+                    let (p, q) = (get(a, ox + i, y), get(b, ox + i, y));
+                    m[0] += k * p;
+                    m[1] += k * q;
+                    m[2] += k * p * p;
+                    m[3] += k * q * q;
+                    m[4] += k * p * q;
+                }
+                rows[y * nx + ox] = m;
+            }
+        }
+        let mut sum = 0.0;
+        for oy in 0..ny {
+            for ox in 0..nx {
+                let mut m = [0.0f64; 5];
+                for (j, &k) in ky.iter().enumerate() {
+                    let r = rows[(oy + j) * nx + ox];
+                    for t in 0..5 {
+                        m[t] += k * r[t];
+                    }
+                }
+                let (mu_a, mu_b) = (m[0], m[1]);
+                let var_a = m[2] - mu_a * mu_a;
+                let var_b = m[3] - mu_b * mu_b;
+                let cov = m[4] - mu_a * mu_b;
+                sum += ((2.0 * mu_a * mu_b + c1) * (2.0 * cov + c2))
+                    / ((mu_a * mu_a + mu_b * mu_b + c1) * (var_a + var_b + c2));
+            }
+        }
+        total += sum / (nx * ny) as f64;
+    }
+    Ok(total / ch as f64)
+}
+
+/// The central `n` taps of a kernel, renormalised to sum to one.
+fn normalised_slice(kernel: &[f64], n: usize) -> Vec<f64> {
+    let start = (kernel.len() - n) / 2;
+    let s: f64 = kernel[start..start + n].iter().sum();
+    kernel[start..start + n].iter().map(|v| v / s).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+    /// Deterministic test pattern (no RNG so the reference value below is reproducible).
+    fn pattern(w: usize, h: usize, phase: f32) -> Image<f32> {
+        let mut img = Image::new(w, h, 1);
+        for y in 0..h {
+            for x in 0..w {
+                let v = 0.5
+                    + 0.3 * ((x as f32 * 0.37 + phase).sin() * (y as f32 * 0.23).cos())
+                    + 0.15 * (((x * 7 + y * 13) % 17) as f32 / 17.0 - 0.5);
+                img.pixel_mut(x, y)[0] = v;
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn ssim_matches_scikit_image_reference() {
+        // Reference: skimage 0.26 structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+        // use_sample_covariance=False, data_range=1.0) on these exact arrays, computed by
+        // bench/reference/ssim_reference.py.
+        let a = pattern(48, 40, 0.0);
+        let b = pattern(48, 40, 0.4);
+        let s = ssim(&a, &b).unwrap();
+        assert!((s - SSIM_REFERENCE).abs() < 1e-6, "ssim = {s}");
+        assert!((ssim(&a, &a).unwrap() - 1.0).abs() < 1e-12);
+    }
+
+    /// Value printed by bench/reference/ssim_reference.py.
+    const SSIM_REFERENCE: f64 = 0.926567529521;
+
+    #[test]
+    fn psnr_of_known_noise() {
+        let a = Image::from_vec(2, 2, 1, vec![0.0f32, 0.0, 0.0, 0.0]).unwrap();
+        let b = Image::from_vec(2, 2, 1, vec![0.1f32, 0.1, 0.1, 0.1]).unwrap();
+        assert!((psnr(&a, &b).unwrap() - 20.0).abs() < 1e-5);
+        assert!(psnr(&a, &a).unwrap().is_infinite());
+        let c = Image::new(3, 2, 1);
+        assert!(psnr(&a, &c).is_err());
+    }
+
+    #[test]
+    fn pose_errors() {
+        let a = Isometry3::identity();
+        let b = Isometry3::from_parts(
+            Translation3::new(3.0, 4.0, 0.0),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 10f64.to_radians()),
+        );
+        assert!((rotation_error_deg(&a, &b) - 10.0).abs() < 1e-9);
+        // The centre of b is -R^T t, whose norm is |t| = 5.
+        assert!((translation_error_m(&a, &b) - 5.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn recall_and_median() {
+        let e = [(0.1, 1.0), (0.5, 1.0), (0.2, 3.0), (f64::INFINITY, f64::INFINITY)];
+        assert_eq!(recall_at(&e, 0.25, 2.0), 0.25);
+        assert_eq!(recall_at(&e, 1.0, 5.0), 0.75);
+        assert_eq!(recall_at(&[], 1.0, 5.0), 0.0);
+        assert_eq!(median(&[3.0, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
+        assert_eq!(median(&[]), None);
+    }
+}

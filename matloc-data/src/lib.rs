@@ -1,0 +1,14 @@
+//! Dataset formats and the procedural synthetic aerial world.
+//!
+//! - [`dataset`]: the in-memory [`Dataset`] every reader produces (frames with intrinsics,
+//!   `cam_from_world` pose, image and optional depth path, split).
+//! - [`nerfstudio`]: read/write nerfstudio `transforms.json`.
+//! - [`colmap`]: read COLMAP sparse models (text and binary).
+//! - [`images`]: load RGB images and depth maps, rescaling intrinsics to the loaded size.
+//! - [`synth`]: the deterministic synthetic aerial world, its renderer and survey capture.
+//! - [`fsutil`]: atomic file writes (temporary file + rename).
+
+pub mod dataset;
+pub mod fsutil;
+
+pub use dataset::{Dataset, Frame, Split};
