@@ -197,14 +197,7 @@ impl Camera {
     /// A pinhole camera from a horizontal field of view, principal point at the image centre.
     pub fn from_hfov(width: u32, height: u32, hfov_deg: f64) -> Result<Self, CameraError> {
         let f = 0.5 * width as f64 / (0.5 * hfov_deg.to_radians()).tan();
-        Self::pinhole(
-            width,
-            height,
-            f,
-            f,
-            0.5 * width as f64,
-            0.5 * height as f64,
-        )
+        Self::pinhole(width, height, f, f, 0.5 * width as f64, 0.5 * height as f64)
     }
 
     /// Checks that every parameter is finite, focal lengths are positive and the image is not empty.
@@ -246,9 +239,7 @@ impl Camera {
 
     /// The 3×3 calibration matrix K.
     pub fn k_matrix(&self) -> Matrix3<f64> {
-        Matrix3::new(
-            self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0,
-        )
+        Matrix3::new(self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0)
     }
 
     /// Normalised (distorted) image coordinates of a pixel.
@@ -394,6 +385,40 @@ mod tests {
                 )
                 .unwrap()
             })
+            .prop_filter("lens must be invertible over the image", radially_monotonic)
+    }
+
+    /// A physical lens maps radius monotonically: the distorted radius must keep growing up to
+    /// (beyond) the image corners, or the corners are unreachable by any ray.
+    fn radially_monotonic(cam: &Camera) -> bool {
+        let corners = [
+            (0.0, 0.0),
+            (cam.width as f64, 0.0),
+            (0.0, cam.height as f64),
+            (cam.width as f64, cam.height as f64),
+        ];
+        let r_max = corners
+            .iter()
+            .map(|&(x, y)| cam.pixel_to_distorted_normalized(Point2::new(x, y)).norm())
+            .fold(0.0, f64::max)
+            * 1.3;
+        let d = cam.distortion;
+        let radial = |r: f64| {
+            let r2 = r * r;
+            r * (1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * d.k3)))
+        };
+        let steps = 200;
+        let mut prev = 0.0;
+        for i in 1..=steps {
+            let r = r_max * i as f64 / steps as f64;
+            let f = radial(r);
+            if f <= prev || f < 0.7 * r {
+                return false;
+            }
+            prev = f;
+        }
+        // The distorted radius must actually reach the corners.
+        prev >= r_max / 1.3
     }
 
     proptest! {

@@ -208,7 +208,12 @@ mod tests {
 
     #[test]
     fn recall_and_median() {
-        let e = [(0.1, 1.0), (0.5, 1.0), (0.2, 3.0), (f64::INFINITY, f64::INFINITY)];
+        let e = [
+            (0.1, 1.0),
+            (0.5, 1.0),
+            (0.2, 3.0),
+            (f64::INFINITY, f64::INFINITY),
+        ];
         assert_eq!(recall_at(&e, 0.25, 2.0), 0.25);
         assert_eq!(recall_at(&e, 1.0, 5.0), 0.75);
         assert_eq!(recall_at(&[], 1.0, 5.0), 0.0);

@@ -89,8 +89,14 @@ pub fn rotation_from_matrix(r: &Matrix3<f64>) -> Result<UnitQuaternion<f64>, Pos
             determinant,
         });
     }
-    let rot = Rotation3::from_matrix_eps(r, 1e-12, 100, Rotation3::identity());
-    Ok(UnitQuaternion::from_rotation_matrix(&rot))
+    // Nearest rotation by SVD (R = U Vᵀ). nalgebra's iterative `from_matrix` starts from the
+    // identity and can stall near 180° rotations, which axis flips produce routinely.
+    let svd = r.svd(true, true);
+    let (u, v_t) = (svd.u.expect("requested"), svd.v_t.expect("requested"));
+    let nearest = u * v_t;
+    Ok(UnitQuaternion::from_rotation_matrix(
+        &Rotation3::from_matrix_unchecked(nearest),
+    ))
 }
 
 fn check_translation(t: &Vector3<f64>, col: usize) -> Result<(), PoseError> {
@@ -115,8 +121,10 @@ fn cam_from_world_from_c2w(
     check_translation(centre, 3)?;
     let rot_world_from_axes = rotation_from_matrix(rot_world_from_axes)?;
     // world_from_cv = world_from_axes * axes_from_cv; axes_from_cv = opencv_from_axesᵀ.
-    let world_from_cv = rot_world_from_axes.to_rotation_matrix().matrix() * opencv_from_axes.transpose();
-    let rot = UnitQuaternion::from_matrix(&world_from_cv);
+    let axes_from_cv = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(
+        opencv_from_axes.transpose(),
+    ));
+    let rot = rot_world_from_axes * axes_from_cv;
     let world_from_cam = Isometry3::from_parts(Translation3::from(*centre), rot);
     Ok(world_from_cam.inverse())
 }
@@ -217,7 +225,7 @@ pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>, up: &Vector3<f64>) -> Op
     let down = forward.cross(&right);
     // Rows of cam_from_world rotation are the camera axes in world coordinates.
     let r = Matrix3::from_rows(&[right.transpose(), down.transpose(), forward.transpose()]);
-    let rot = UnitQuaternion::from_matrix(&r);
+    let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
     let t = -(rot * eye.coords);
     Some(Isometry3::from_parts(Translation3::from(t), rot))
 }
