@@ -266,7 +266,8 @@ impl Camera {
     /// Projects a point in camera coordinates to a pixel; `None` if it is not in front of the
     /// camera.
     pub fn project(&self, p_cam: &Vector3<f64>) -> Option<Point2<f64>> {
-        if !(p_cam.z > 1e-12) {
+        // Also rejects NaN depth.
+        if p_cam.z.is_nan() || p_cam.z <= 1e-12 {
             return None;
         }
         Some(self.normalized_to_pixel(Vector2::new(p_cam.x / p_cam.z, p_cam.y / p_cam.z)))
