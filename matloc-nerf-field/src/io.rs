@@ -75,7 +75,7 @@ impl NerfactoField {
 
     /// Serialises the weights to safetensors bytes.
     pub fn to_safetensors_bytes(&self) -> Result<Vec<u8>, FieldError> {
-        let shapes = Self::tensor_shapes(&self.config);
+        let shapes = Self::tensor_shapes(self.config());
         let data = self.tensors();
         let mut views = Vec::with_capacity(data.len());
         for ((name, shape), (_, vals)) in shapes.into_iter().zip(&data) {
@@ -97,7 +97,7 @@ impl NerfactoField {
 
     /// Saves weights (safetensors) and config (JSON), each written atomically.
     pub fn save(&self, weights_path: &Path, config_path: &Path) -> Result<(), FieldError> {
-        let json = serde_json::to_vec_pretty(&self.config).map_err(|source| FieldError::Json {
+        let json = serde_json::to_vec_pretty(self.config()).map_err(|source| FieldError::Json {
             path: config_path.to_path_buf(),
             source,
         })?;
