@@ -1,0 +1,179 @@
+use matloc_nerf_field::{FeatureField, SceneBox, contract_to_unit};
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::error::RenderError;
+
+/// Occupancy-grid settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct OccupancyConfig {
+    /// Cells per axis over the contracted cube `[0,1]³`.
+    pub resolution: usize,
+    /// Multiplier applied to every cell's density estimate at each update (instant-ngp: 0.95).
+    pub decay: f32,
+    /// A cell is occupied if its estimate exceeds `min(density_threshold, mean estimate)`.
+    pub density_threshold: f32,
+    /// Fraction of cells re-evaluated per update (after the first, full update).
+    pub update_fraction: f32,
+}
+
+impl Default for OccupancyConfig {
+    fn default() -> Self {
+        Self {
+            resolution: 128,
+            decay: 0.95,
+            density_threshold: 0.01,
+            update_fraction: 0.125,
+        }
+    }
+}
+
+/// A density grid over the contracted cube with an occupancy bitfield, for empty-space
+/// skipping (instant-ngp style).
+///
+/// Each cell keeps `max(decay · old, new)` of the field's density at a random point in the
+/// cell. Because cells are in contracted space, far cells cover large world volumes, which is
+/// where most rays spend their steps in unbounded scenes.
+#[derive(Clone, Debug)]
+pub struct OccupancyGrid {
+    config: OccupancyConfig,
+    scene_box: SceneBox,
+    density: Vec<f32>,
+    bits: Vec<u64>,
+    updates: u64,
+}
+
+impl OccupancyGrid {
+    /// A grid with every cell occupied (nothing is known yet).
+    pub fn new(config: OccupancyConfig, scene_box: SceneBox) -> Result<Self, RenderError> {
+        if !(2..=1024).contains(&config.resolution) {
+            return Err(RenderError::InvalidConfig {
+                field: "occupancy.resolution",
+                reason: format!("{} not in 2..=1024", config.resolution),
+            });
+        }
+        let n = config.resolution.pow(3);
+        Ok(Self {
+            config,
+            scene_box,
+            density: vec![f32::MAX; n],
+            bits: vec![u64::MAX; n.div_ceil(64)],
+            updates: 0,
+        })
+    }
+
+    /// Settings.
+    pub fn config(&self) -> &OccupancyConfig {
+        &self.config
+    }
+
+    /// Number of cells.
+    pub fn num_cells(&self) -> usize {
+        self.density.len()
+    }
+
+    /// Fraction of occupied cells.
+    pub fn occupied_fraction(&self) -> f32 {
+        let n = self.num_cells();
+        (0..n).filter(|&i| self.bit(i)).count() as f32 / n as f32
+    }
+
+    #[inline]
+    fn bit(&self, i: usize) -> bool {
+        (self.bits[i >> 6] >> (i & 63)) & 1 == 1
+    }
+
+    #[inline]
+    fn cell_of_unit(&self, u: [f32; 3]) -> usize {
+        let r = self.config.resolution;
+        let c = |x: f32| ((x * r as f32) as usize).min(r - 1);
+        c(u[0]) + r * (c(u[1]) + r * c(u[2]))
+    }
+
+    /// Whether the cell containing world point `p` is occupied.
+    #[inline]
+    pub fn is_occupied_world(&self, p: [f32; 3]) -> bool {
+        self.bit(self.cell_of_unit(contract_to_unit(&self.scene_box, p)))
+    }
+
+    /// World point of unit-cube point `u` (inverse of the contraction; points on the outer
+    /// boundary map to a very distant point).
+    pub fn unit_to_world(&self, u: [f32; 3]) -> [f32; 3] {
+        let c: [f32; 3] = [4.0 * u[0] - 2.0, 4.0 * u[1] - 2.0, 4.0 * u[2] - 2.0];
+        let n = c[0].abs().max(c[1].abs()).max(c[2].abs());
+        let x = if n <= 1.0 {
+            c
+        } else {
+            let m = 1.0 / (2.0 - n.min(2.0 - 1e-6));
+            [c[0] * m / n, c[1] * m / n, c[2] * m / n]
+        };
+        let sb = &self.scene_box;
+        [0, 1, 2].map(|a| (x[a] + 1.0) * 0.5 * (sb.max[a] - sb.min[a]) + sb.min[a])
+    }
+
+    /// One update from the field: decays every estimate, evaluates the density at a random
+    /// point in a set of cells (all cells on the first update, then a random
+    /// `update_fraction`), and rebuilds the bitfield.
+    pub fn update<R: Rng>(
+        &mut self,
+        field: &dyn FeatureField,
+        rng: &mut R,
+    ) -> Result<(), RenderError> {
+        let n = self.num_cells();
+        let r = self.config.resolution;
+        let cells: Vec<usize> = if self.updates == 0 {
+            (0..n).collect()
+        } else {
+            let m = ((n as f32 * self.config.update_fraction) as usize).clamp(1, n);
+            (0..m).map(|_| rng.random_range(0..n)).collect()
+        };
+        let pts: Vec<[f32; 3]> = cells
+            .iter()
+            .map(|&i| {
+                let (x, y, z) = (i % r, (i / r) % r, i / (r * r));
+                let j = |c: usize, rng: &mut R| (c as f32 + rng.random::<f32>()) / r as f32;
+                self.unit_to_world([j(x, rng), j(y, rng), j(z, rng)])
+            })
+            .collect();
+        let mut dens = vec![0f32; pts.len()];
+        field.density(&pts, &mut dens)?;
+        if self.updates == 0 {
+            self.density.fill(0.0);
+        } else {
+            for d in &mut self.density {
+                *d *= self.config.decay;
+            }
+        }
+        for (&i, &d) in cells.iter().zip(&dens) {
+            let d = if d.is_finite() { d } else { f32::MAX };
+            self.density[i] = self.density[i].max(d);
+        }
+        self.updates += 1;
+        self.rebuild_bits();
+        Ok(())
+    }
+
+    fn rebuild_bits(&mut self) {
+        let mean = self.density.iter().map(|&d| d as f64).sum::<f64>() / self.num_cells() as f64;
+        let thr = (self.config.density_threshold as f64).min(mean) as f32;
+        self.bits.fill(0);
+        for (i, &d) in self.density.iter().enumerate() {
+            if d > thr {
+                self.bits[i >> 6] |= 1 << (i & 63);
+            }
+        }
+    }
+
+    /// A grid built from the field by one full update (e.g. after loading a model).
+    pub fn from_field<R: Rng>(
+        config: OccupancyConfig,
+        scene_box: SceneBox,
+        field: &dyn FeatureField,
+        rng: &mut R,
+    ) -> Result<Self, RenderError> {
+        let mut g = Self::new(config, scene_box)?;
+        g.update(field, rng)?;
+        Ok(g)
+    }
+}

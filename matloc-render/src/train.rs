@@ -1,0 +1,326 @@
+use std::time::Instant;
+
+use matloc_nerf_field::{Adam, AdamConfig, ExponentialDecay, FieldGrads, NerfactoField};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::error::RenderError;
+use crate::occupancy::{OccupancyConfig, OccupancyGrid};
+use crate::rays::RayBatch;
+use crate::sampler::{MarchConfig, importance_resample, sample_rays};
+use crate::volume::{
+    RenderGradients, SampleValues, compute_weights, volume_render, volume_render_backward,
+};
+
+/// Colour behind the scene (where rays are not fully absorbed).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Background {
+    /// A constant colour.
+    Fixed([f32; 3]),
+    /// A single colour optimised with the field (starting from the given value) — useful for
+    /// sky when the far range is short of the horizon.
+    Learned([f32; 3]),
+}
+
+/// Which sampler the trainer uses.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum SamplerKind {
+    /// Stratified samples on the spacing grid, no skipping.
+    Uniform,
+    /// Occupancy grid with empty-space skipping (instant-ngp). No regulariser is needed:
+    /// the grid is derived from the field itself, not learned.
+    Occupancy,
+    /// A density-only coarse pass on the stratified grid, then `fine` importance samples from
+    /// its weights; only the fine samples are trained. The coarse pass uses the field
+    /// itself without gradients, so no interlevel loss is needed.
+    UniformImportance {
+        /// Importance samples per ray.
+        fine: usize,
+    },
+}
+
+/// Training settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TrainConfig {
+    /// Rays per step.
+    pub batch_rays: usize,
+    /// Learning-rate schedule (the paper: 1e-2 → 1e-4).
+    pub schedule: ExponentialDecay,
+    /// Adam settings.
+    pub adam: AdamConfig,
+    /// Sampler.
+    pub sampler: SamplerKind,
+    /// Step grid and per-ray sample budget.
+    pub march: MarchConfig,
+    /// Occupancy grid settings (used by [`SamplerKind::Occupancy`]).
+    pub occupancy: OccupancyConfig,
+    /// Steps between occupancy-grid updates.
+    pub occupancy_update_every: u64,
+    /// Background model.
+    pub background: Background,
+    /// Seed of ray selection and sample jitter.
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            batch_rays: 4096,
+            schedule: ExponentialDecay::default(),
+            adam: AdamConfig::default(),
+            sampler: SamplerKind::Occupancy,
+            march: MarchConfig {
+                max_samples: 48,
+                ..MarchConfig::default()
+            },
+            occupancy: OccupancyConfig::default(),
+            occupancy_update_every: 16,
+            background: Background::Fixed([0.0; 3]),
+            seed: 0,
+        }
+    }
+}
+
+/// Numbers from one training step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepStats {
+    /// Index of the step (0-based).
+    pub step: u64,
+    /// Mean squared RGB error over the batch.
+    pub loss: f32,
+    /// `−10 log10(loss)`.
+    pub psnr: f32,
+    /// Learning rate used.
+    pub lr: f32,
+    /// Field samples evaluated.
+    pub samples: usize,
+}
+
+/// Progress report passed to the [`Trainer::fit`] callback.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Progress {
+    /// The step just taken.
+    pub stats: StepStats,
+    /// Steps requested in this call.
+    pub total_steps: u64,
+    /// Seconds since the call started.
+    pub elapsed_s: f64,
+}
+
+/// Owns a field, its optimiser state and the sampler state; runs training steps.
+#[derive(Debug)]
+pub struct Trainer {
+    /// The field being trained.
+    pub field: NerfactoField,
+    /// Settings.
+    pub config: TrainConfig,
+    /// Occupancy grid (for the occupancy sampler).
+    pub grid: Option<OccupancyGrid>,
+    adam: Adam,
+    grads: FieldGrads,
+    background: [f32; 3],
+    bg_adam: Adam,
+    step: u64,
+    rng: ChaCha8Rng,
+}
+
+impl Trainer {
+    /// Sets up optimiser and sampler state for `field`.
+    pub fn new(field: NerfactoField, config: TrainConfig) -> Result<Self, RenderError> {
+        if config.batch_rays == 0 || config.march.steps == 0 {
+            return Err(RenderError::InvalidConfig {
+                field: "batch_rays/march.steps",
+                reason: "must be positive".into(),
+            });
+        }
+        let grid = match config.sampler {
+            SamplerKind::Occupancy => Some(OccupancyGrid::new(
+                config.occupancy,
+                field.config().scene_box,
+            )?),
+            _ => None,
+        };
+        let adam = Adam::new(config.adam, &field.param_sizes());
+        let grads = field.zero_grads();
+        let background = match config.background {
+            Background::Fixed(c) | Background::Learned(c) => c,
+        };
+        Ok(Self {
+            adam,
+            grads,
+            grid,
+            background,
+            bg_adam: Adam::new(config.adam, &[3]),
+            step: 0,
+            rng: ChaCha8Rng::seed_from_u64(config.seed),
+            field,
+            config,
+        })
+    }
+
+    /// Steps taken so far.
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    /// Current background colour.
+    pub fn background(&self) -> [f32; 3] {
+        self.background
+    }
+
+    /// One step on a batch: sample → field → render → MSE → backward → Adam.
+    ///
+    /// On a non-finite loss or gradient, returns [`RenderError::NonFiniteLoss`] with the
+    /// weights and optimiser state unchanged.
+    pub fn train_step(
+        &mut self,
+        rays: &RayBatch,
+        target_rgb: &[f32],
+    ) -> Result<StepStats, RenderError> {
+        let n = rays.len();
+        if target_rgb.len() != 3 * n {
+            return Err(RenderError::LengthMismatch {
+                what: "target_rgb",
+                expected: 3 * n,
+                actual: target_rgb.len(),
+            });
+        }
+        if n == 0 {
+            return Err(RenderError::EmptyTrainingSet);
+        }
+        if let (Some(grid), true) = (
+            self.grid.as_mut(),
+            self.step % self.config.occupancy_update_every.max(1) == 0,
+        ) {
+            grid.update(&self.field, &mut self.rng)?;
+        }
+        let samples = match self.config.sampler {
+            SamplerKind::Occupancy => sample_rays(
+                rays,
+                self.grid.as_ref(),
+                &self.config.march,
+                Some(&mut self.rng),
+            ),
+            SamplerKind::Uniform => {
+                sample_rays(rays, None, &self.config.march, Some(&mut self.rng))
+            }
+            SamplerKind::UniformImportance { fine } => {
+                let coarse = sample_rays(rays, None, &self.config.march, Some(&mut self.rng));
+                let (pts, _, _) = coarse.points(rays);
+                let mut sigma = vec![0f32; pts.len()];
+                matloc_nerf_field::FeatureField::density(&self.field, &pts, &mut sigma)?;
+                let (w, _) = compute_weights(&coarse, &sigma);
+                importance_resample(&coarse, &w, fine, 0.01, Some(&mut self.rng))
+            }
+        };
+        let (pts, dirs, app) = samples.points(rays);
+        let cache = self.field.forward_train(&pts, &dirs, &app)?;
+        let values = SampleValues {
+            sigma: cache.density(),
+            rgb: cache.rgb(),
+            features: &[],
+            num_dims: 0,
+        };
+        let out = volume_render(&samples, &values, self.background)?;
+        let mut loss = 0f64;
+        let mut d_rgb = vec![0f32; 3 * n];
+        let scale = 2.0 / (3 * n) as f32;
+        for i in 0..3 * n {
+            let e = out.rgb[i] - target_rgb[i];
+            loss += (e as f64) * (e as f64);
+            d_rgb[i] = scale * e;
+        }
+        let loss = (loss / (3 * n) as f64) as f32;
+        if !loss.is_finite() {
+            return Err(RenderError::NonFiniteLoss {
+                step: self.step,
+                loss,
+            });
+        }
+        let g = volume_render_backward(
+            &samples,
+            &values,
+            self.background,
+            &RenderGradients {
+                rgb: &d_rgb,
+                ..RenderGradients::default()
+            },
+        )?;
+        if !g.sigma.iter().chain(&g.rgb).all(|v| v.is_finite()) {
+            return Err(RenderError::NonFiniteLoss {
+                step: self.step,
+                loss: f32::NAN,
+            });
+        }
+        self.field
+            .backward(&cache, &g.sigma, &g.rgb, &mut self.grads)?;
+        let lr = self.config.schedule.lr(self.step);
+        {
+            let mut params = self.field.param_slices_mut();
+            let mut grads = self.grads.slices_mut();
+            self.adam.step(lr, &mut params, &mut grads);
+        }
+        if matches!(self.config.background, Background::Learned(_)) {
+            let mut gb = g.background;
+            self.bg_adam
+                .step(lr, &mut [&mut self.background[..]], &mut [&mut gb[..]]);
+            for c in &mut self.background {
+                *c = c.clamp(0.0, 1.0);
+            }
+        }
+        let stats = StepStats {
+            step: self.step,
+            loss,
+            psnr: -10.0 * loss.max(1e-10).log10(),
+            lr,
+            samples: samples.len(),
+        };
+        self.step += 1;
+        Ok(stats)
+    }
+
+    /// Trains for `steps` steps on random batches drawn from all `rays` (with `rgb` targets,
+    /// `3` per ray), calling `progress` after every step. Returns the last step's stats.
+    pub fn fit(
+        &mut self,
+        rays: &RayBatch,
+        rgb: &[f32],
+        steps: u64,
+        mut progress: impl FnMut(&Progress),
+    ) -> Result<Option<StepStats>, RenderError> {
+        rays.validate()?;
+        if rays.is_empty() {
+            return Err(RenderError::EmptyTrainingSet);
+        }
+        if rgb.len() != 3 * rays.len() {
+            return Err(RenderError::LengthMismatch {
+                what: "rgb",
+                expected: 3 * rays.len(),
+                actual: rgb.len(),
+            });
+        }
+        let start = Instant::now();
+        let mut last = None;
+        let b = self.config.batch_rays.min(rays.len());
+        for _ in 0..steps {
+            let idx: Vec<usize> = (0..b)
+                .map(|_| self.rng.random_range(0..rays.len()))
+                .collect();
+            let batch = rays.gather(&idx);
+            let target: Vec<f32> = idx
+                .iter()
+                .flat_map(|&i| [rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2]])
+                .collect();
+            let stats = self.train_step(&batch, &target)?;
+            progress(&Progress {
+                stats,
+                total_steps: steps,
+                elapsed_s: start.elapsed().as_secs_f64(),
+            });
+            last = Some(stats);
+        }
+        Ok(last)
+    }
+}
