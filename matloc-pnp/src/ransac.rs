@@ -35,6 +35,17 @@ pub trait Estimator {
 pub trait Sampler {
     /// Fills `sample` with distinct indices below the number of data points.
     fn sample(&mut self, rng: &mut dyn RngCore, sample: &mut [usize]);
+
+    /// The most recent sample came from the first `pool_size()` entries of [`Sampler::order`].
+    ///
+    /// Adaptive termination uses it: the chance that a sample was all-inlier depends on the
+    /// inlier ratio within the pool it was drawn from, not in the whole data.
+    fn pool_size(&self) -> usize;
+
+    /// Data indices in priority order; `None` means the identity (uniform samplers).
+    fn order(&self) -> Option<&[usize]> {
+        None
+    }
 }
 
 /// Uniform sampling without replacement.
@@ -66,6 +77,10 @@ fn distinct_uniform(rng: &mut dyn RngCore, n: usize, sample: &mut [usize]) {
 impl Sampler for UniformSampler {
     fn sample(&mut self, rng: &mut dyn RngCore, sample: &mut [usize]) {
         distinct_uniform(rng, self.num_data, sample);
+    }
+
+    fn pool_size(&self) -> usize {
+        self.num_data
     }
 }
 
@@ -135,6 +150,14 @@ impl Sampler for ProsacSampler {
         for s in sample.iter_mut() {
             *s = self.order[*s];
         }
+    }
+
+    fn pool_size(&self) -> usize {
+        self.pool
+    }
+
+    fn order(&self) -> Option<&[usize]> {
+        Some(&self.order)
     }
 }
 
@@ -232,6 +255,20 @@ pub fn required_iterations(
     ((1.0 - confidence).ln() / (1.0 - p_good).ln()).ceil()
 }
 
+/// `ln P(a sample of size m from the first `pool` entries is not all-inlier)`, sampling
+/// without replacement; `inlier_prefix[k]` counts inliers among the first `k` entries.
+fn log_miss_probability(inlier_prefix: &[u32], pool: usize, m: usize) -> f64 {
+    let inliers = inlier_prefix[pool] as usize;
+    if inliers < m {
+        return 0.0;
+    }
+    let mut p_good = 1.0;
+    for i in 0..m {
+        p_good *= (inliers - i) as f64 / (pool - i) as f64;
+    }
+    (1.0 - p_good).max(0.0).ln()
+}
+
 /// MSAC score and inlier count, or `None` as soon as the partial score exceeds `bound`.
 pub fn msac_score<E: Estimator>(
     estimator: &E,
@@ -258,9 +295,10 @@ pub fn msac_score<E: Estimator>(
 
 /// Runs LO-RANSAC with MSAC scoring.
 ///
-/// Termination is adaptive: after a new best model the required number of samples is
-/// recomputed from its inlier ratio and `confidence`, clamped to
-/// `[min_iterations, max_iterations]`. On each new best model, local optimisation refits on the
+/// Termination is adaptive: sampling stops (after `min_iterations`, at most `max_iterations`)
+/// once, given the best model's inliers, the probability that no drawn sample was all-inlier
+/// falls below `1 − confidence`. Each sample counts with the inlier ratio of the pool it was
+/// drawn from, so PROSAC's early, inlier-rich samples earn their due and it stops sooner. On each new best model, local optimisation refits on the
 /// points within `lo_threshold_factor × max_error_px` (up to `lo_iterations` rounds while the
 /// score improves).
 pub fn ransac<E: Estimator, S: Sampler + ?Sized>(
@@ -288,16 +326,26 @@ pub fn ransac<E: Estimator, S: Sampler + ?Sized>(
     if n < m || m == 0 {
         return out;
     }
-    let mut required = options.max_iterations as f64;
+    let log_miss_target = (1.0 - options.confidence).ln();
+    // Σ over drawn samples of ln P(sample not all-inlier | best model's inliers), kept per pool
+    // size so it can be re-evaluated whenever the best model (and so the inlier set) changes.
+    let mut pool_history: Vec<(usize, usize)> = Vec::new();
+    let mut inlier_prefix: Vec<u32> = vec![0; n + 1];
+    let mut log_miss = 0.0;
     let mut sample = vec![0usize; m];
     let mut models = Vec::with_capacity(4);
     let mut candidates = Vec::new();
     while out.iterations < options.max_iterations {
-        if out.iterations >= options.min_iterations && out.iterations as f64 >= required {
+        if out.iterations >= options.min_iterations && log_miss <= log_miss_target {
             break;
         }
         out.iterations += 1;
         sampler.sample(rng, &mut sample);
+        let pool = sampler.pool_size().clamp(m, n);
+        match pool_history.last_mut() {
+            Some((p, count)) if *p == pool => *count += 1,
+            _ => pool_history.push((pool, 1)),
+        }
         models.clear();
         estimator.fit_minimal(&sample, &mut models);
         out.num_hypotheses += models.len();
@@ -311,6 +359,7 @@ pub fn ransac<E: Estimator, S: Sampler + ?Sized>(
             }
         }
         if !improved {
+            log_miss += log_miss_probability(&inlier_prefix, pool, m);
             continue;
         }
         if options.local_optimization {
@@ -337,7 +386,21 @@ pub fn ransac<E: Estimator, S: Sampler + ?Sized>(
                 }
             }
         }
-        required = required_iterations(best_inliers, n, m, options.confidence);
+        if let Some(current) = best.as_ref() {
+            let order = sampler.order();
+            let mut count = 0u32;
+            for k in 0..n {
+                let i = order.map_or(k, |o| o[k]);
+                if estimator.squared_residual(current, i) < threshold_sq {
+                    count += 1;
+                }
+                inlier_prefix[k + 1] = count;
+            }
+            log_miss = pool_history
+                .iter()
+                .map(|&(p, c)| c as f64 * log_miss_probability(&inlier_prefix, p, m))
+                .sum();
+        }
     }
     out.model = best;
     out.score = best_score;
