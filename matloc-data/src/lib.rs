@@ -10,5 +10,7 @@
 
 pub mod dataset;
 pub mod fsutil;
+pub mod images;
+pub mod nerfstudio;
 
 pub use dataset::{Dataset, Frame, Split};

@@ -1,0 +1,671 @@
+//! Loading RGB images and depth maps, with the intrinsics fitted to what was actually loaded.
+//!
+//! - RGB: PNG or JPEG through the `image` crate, returned as a three-channel
+//!   [`Image<f32>`] in `[0, 1]` (alpha is dropped).
+//! - Depth: z-depth in metres (distance along the camera's optical axis, not along the ray);
+//!   `0` means "no depth" (sky). The project's lossless format is float32 `.npy`
+//!   (little-endian `<f4`, C order, shape `(H, W)`): 16-bit millimetres overflow at 65.5 m,
+//!   which oblique aerial views exceed. 16-bit PNG depth (millimetres by default) is read too,
+//!   and can be written where its range suffices.
+//!
+//! Every file is written atomically through [`crate::fsutil`].
+
+use std::fs;
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use image::codecs::png::PngEncoder;
+use image::{DynamicImage, ImageBuffer, Luma, Rgb};
+use matloc_core::{Camera, Image};
+use thiserror::Error;
+
+use crate::dataset::{Dataset, Frame};
+use crate::fsutil::write_atomic_with;
+
+/// Default scale of 16-bit PNG depth: one unit is a millimetre.
+pub const PNG_DEPTH_SCALE_M: f64 = 1e-3;
+
+/// Errors raised when reading or writing images and depth maps.
+#[derive(Debug, Error)]
+pub enum ImageLoadError {
+    /// The file does not exist.
+    #[error("image file not found: {path}")]
+    NotFound {
+        /// The missing file.
+        path: PathBuf,
+    },
+    /// Reading or writing failed at the operating-system level.
+    #[error("I/O error on {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: io::Error,
+    },
+    /// The image could not be decoded or encoded.
+    #[error("cannot decode or encode image {path}: {source}")]
+    Codec {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: image::ImageError,
+    },
+    /// The image size cannot be reconciled with the intrinsics (the aspect ratios differ).
+    #[error(
+        "image {path} is {image_width}x{image_height} but its intrinsics are for \
+         {intrinsics_width}x{intrinsics_height} (aspect ratios differ, cannot rescale)"
+    )]
+    SizeMismatch {
+        /// The image file.
+        path: PathBuf,
+        /// Width the intrinsics were given for.
+        intrinsics_width: u32,
+        /// Height the intrinsics were given for.
+        intrinsics_height: u32,
+        /// Width of the file.
+        image_width: u32,
+        /// Height of the file.
+        image_height: u32,
+    },
+    /// A depth PNG that is not single-channel 16-bit.
+    #[error("depth PNG {path} must be 16-bit grayscale, found {found}")]
+    NotDepthPng {
+        /// The file.
+        path: PathBuf,
+        /// Colour type found, e.g. `Rgb8`.
+        found: String,
+    },
+    /// A `.npy` file that is malformed or of an unsupported kind.
+    #[error("bad .npy file {path}: {reason}")]
+    Npy {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A depth value that the chosen format cannot store.
+    #[error("depth {value} m at pixel ({x}, {y}) cannot be stored in {path}: {reason}")]
+    DepthOutOfRange {
+        /// The file being written.
+        path: PathBuf,
+        /// Pixel column.
+        x: usize,
+        /// Pixel row.
+        y: usize,
+        /// The value.
+        value: f32,
+        /// Why it does not fit.
+        reason: &'static str,
+    },
+    /// A buffer with the wrong number of channels was given to a writer.
+    #[error("{path}: expected a {expected}-channel image, got {actual} channels")]
+    Channels {
+        /// The file being written.
+        path: PathBuf,
+        /// Channels required.
+        expected: usize,
+        /// Channels given.
+        actual: usize,
+    },
+}
+
+fn io_error(path: &Path, source: io::Error) -> ImageLoadError {
+    if source.kind() == io::ErrorKind::NotFound {
+        ImageLoadError::NotFound {
+            path: path.to_path_buf(),
+        }
+    } else {
+        ImageLoadError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+}
+
+fn codec_error(path: &Path, source: image::ImageError) -> ImageLoadError {
+    match source {
+        image::ImageError::IoError(e) => io_error(path, e),
+        source => ImageLoadError::Codec {
+            path: path.to_path_buf(),
+            source,
+        },
+    }
+}
+
+/// Width and height of an image file, reading only its header.
+pub fn image_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
+    image::image_dimensions(path).map_err(|e| codec_error(path, e))
+}
+
+fn decode(path: &Path) -> Result<DynamicImage, ImageLoadError> {
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| io_error(path, e))?
+        .with_guessed_format()
+        .map_err(|e| io_error(path, e))?;
+    reader.decode().map_err(|e| codec_error(path, e))
+}
+
+/// Loads an RGB image as three channels in `[0, 1]` (8-bit values / 255; 16-bit / 65535).
+pub fn load_rgb(path: &Path) -> Result<Image<f32>, ImageLoadError> {
+    let img = decode(path)?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let data: Vec<f32> = match img {
+        DynamicImage::ImageRgb16(_)
+        | DynamicImage::ImageRgba16(_)
+        | DynamicImage::ImageLuma16(_)
+        | DynamicImage::ImageLumaA16(_) => img
+            .to_rgb16()
+            .into_raw()
+            .into_iter()
+            .map(|v| v as f32 / 65535.0)
+            .collect(),
+        _ => img
+            .to_rgb8()
+            .into_raw()
+            .into_iter()
+            .map(|v| v as f32 / 255.0)
+            .collect(),
+    };
+    Ok(Image::from_vec(w, h, 3, data).expect("decoder returns w*h*3 values"))
+}
+
+/// Averages `factor × factor` blocks (box filter). Trailing rows/columns that do not fill a
+/// block are dropped, so the output is `(W / factor) × (H / factor)` and output pixel `i`
+/// covers input pixels `[i·factor, (i+1)·factor)`: the pixel scale is exactly `1 / factor`.
+pub fn downscale_box(img: &Image<f32>, factor: u32) -> Image<f32> {
+    let f = factor.max(1) as usize;
+    if f == 1 {
+        return img.clone();
+    }
+    let (w, h, c) = img.shape();
+    let (ow, oh) = ((w / f).max(1).min(w), (h / f).max(1).min(h));
+    let mut out = Image::new(ow, oh, c);
+    let mut acc = vec![0.0f32; c];
+    for oy in 0..oh {
+        for ox in 0..ow {
+            acc.iter_mut().for_each(|a| *a = 0.0);
+            let mut n = 0usize;
+            for y in oy * f..((oy + 1) * f).min(h) {
+                for x in ox * f..((ox + 1) * f).min(w) {
+                    for (a, v) in acc.iter_mut().zip(img.pixel(x, y)) {
+                        *a += v;
+                    }
+                    n += 1;
+                }
+            }
+            let inv = 1.0 / n.max(1) as f32;
+            for (o, a) in out.pixel_mut(ox, oy).iter_mut().zip(&acc) {
+                *o = a * inv;
+            }
+        }
+    }
+    out
+}
+
+/// Subsamples a depth map by taking the pixel nearest each block's centre: averaging depths
+/// across an occlusion edge would invent surfaces that exist in neither layer.
+pub fn downscale_depth(depth: &Image<f32>, factor: u32) -> Image<f32> {
+    let f = factor.max(1) as usize;
+    if f == 1 {
+        return depth.clone();
+    }
+    let (w, h, c) = depth.shape();
+    let (ow, oh) = ((w / f).max(1).min(w), (h / f).max(1).min(h));
+    let mut out = Image::new(ow, oh, c);
+    for oy in 0..oh {
+        for ox in 0..ow {
+            let sx = (ox * f + f / 2).min(w - 1);
+            let sy = (oy * f + f / 2).min(h - 1);
+            out.pixel_mut(ox, oy).copy_from_slice(depth.pixel(sx, sy));
+        }
+    }
+    out
+}
+
+/// Intrinsics for the size an image actually has: unchanged when the sizes agree, rescaled
+/// when only the resolution differs, an error naming both sizes when the aspect ratio differs.
+pub fn fit_camera_to_size(
+    camera: &Camera,
+    width: u32,
+    height: u32,
+    path: &Path,
+) -> Result<Camera, ImageLoadError> {
+    if camera.width == width && camera.height == height {
+        return Ok(*camera);
+    }
+    camera
+        .rescaled(width, height)
+        .map_err(|_| ImageLoadError::SizeMismatch {
+            path: path.to_path_buf(),
+            intrinsics_width: camera.width,
+            intrinsics_height: camera.height,
+            image_width: width,
+            image_height: height,
+        })
+}
+
+/// Intrinsics after [`downscale_box`] by `factor` (exact `1 / factor` scale, sizes floored).
+pub fn box_downscaled_camera(camera: &Camera, factor: u32) -> Camera {
+    let f = factor.max(1);
+    let s = 1.0 / f as f64;
+    Camera {
+        width: (camera.width / f).max(1),
+        height: (camera.height / f).max(1),
+        fx: camera.fx * s,
+        fy: camera.fy * s,
+        cx: camera.cx * s,
+        cy: camera.cy * s,
+        distortion: camera.distortion,
+    }
+}
+
+/// Loads a frame's image, fits its intrinsics to the loaded size and optionally downscales
+/// both by an integer factor (`1` = full size). Returns the image and matching camera.
+pub fn load_frame_image(
+    dataset: &Dataset,
+    frame: &Frame,
+    downscale: u32,
+) -> Result<(Image<f32>, Camera), ImageLoadError> {
+    let path = dataset.image_path(frame);
+    let img = load_rgb(&path)?;
+    let camera = fit_camera_to_size(
+        &frame.camera,
+        img.width() as u32,
+        img.height() as u32,
+        &path,
+    )?;
+    if downscale <= 1 {
+        return Ok((img, camera));
+    }
+    Ok((
+        downscale_box(&img, downscale),
+        box_downscaled_camera(&camera, downscale),
+    ))
+}
+
+/// Loads a frame's depth map (if it has one), downscaled like [`load_frame_image`]. The depth
+/// must have the image's aspect ratio; its values are metres whatever its resolution.
+pub fn load_frame_depth(
+    dataset: &Dataset,
+    frame: &Frame,
+    downscale: u32,
+) -> Result<Option<Image<f32>>, ImageLoadError> {
+    let Some(path) = dataset.depth_path(frame) else {
+        return Ok(None);
+    };
+    let depth = read_depth(&path, PNG_DEPTH_SCALE_M)?;
+    fit_camera_to_size(
+        &frame.camera,
+        depth.width() as u32,
+        depth.height() as u32,
+        &path,
+    )?;
+    Ok(Some(downscale_depth(&depth, downscale)))
+}
+
+/// Writes a three-channel `[0, 1]` image as an 8-bit RGB PNG, atomically (values are clamped
+/// and rounded).
+pub fn write_png_rgb(img: &Image<f32>, path: &Path) -> Result<(), ImageLoadError> {
+    if img.channels() != 3 {
+        return Err(ImageLoadError::Channels {
+            path: path.to_path_buf(),
+            expected: 3,
+            actual: img.channels(),
+        });
+    }
+    let bytes: Vec<u8> = img
+        .data()
+        .iter()
+        .map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+        .collect();
+    let buf: ImageBuffer<Rgb<u8>, Vec<u8>> =
+        ImageBuffer::from_raw(img.width() as u32, img.height() as u32, bytes)
+            .expect("length checked by Image");
+    write_encoded(path, |w| buf.write_with_encoder(PngEncoder::new(w)))
+}
+
+/// Encodes into a temporary file and renames it over `path`; an encoder error leaves nothing.
+fn write_encoded(
+    path: &Path,
+    encode: impl FnOnce(&mut BufWriter<&mut fs::File>) -> image::ImageResult<()>,
+) -> Result<(), ImageLoadError> {
+    let mut codec_err = None;
+    let result = write_atomic_with(path, |f| {
+        let mut w = BufWriter::new(f);
+        if let Err(e) = encode(&mut w) {
+            codec_err = Some(e);
+            return Err(io::Error::other("encoding failed"));
+        }
+        w.flush()
+    });
+    match (result, codec_err) {
+        (_, Some(e)) => Err(codec_error(path, e)),
+        (Err(e), None) => Err(io_error(path, e)),
+        (Ok(()), None) => Ok(()),
+    }
+}
+
+/// Reads a depth map in metres, choosing the format by extension: `.npy` (float32/float64)
+/// or `.png` (16-bit, multiplied by `png_scale_m`, e.g. [`PNG_DEPTH_SCALE_M`]).
+pub fn read_depth(path: &Path, png_scale_m: f64) -> Result<Image<f32>, ImageLoadError> {
+    let is_npy = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    if is_npy {
+        read_depth_npy(path)
+    } else {
+        read_depth_png(path, png_scale_m)
+    }
+}
+
+/// Reads a 16-bit grayscale PNG depth map, scaling each value by `scale_m` (0 stays 0).
+pub fn read_depth_png(path: &Path, scale_m: f64) -> Result<Image<f32>, ImageLoadError> {
+    let img = decode(path)?;
+    let DynamicImage::ImageLuma16(buf) = img else {
+        return Err(ImageLoadError::NotDepthPng {
+            path: path.to_path_buf(),
+            found: format!("{:?}", img.color()),
+        });
+    };
+    let (w, h) = (buf.width() as usize, buf.height() as usize);
+    let data = buf
+        .into_raw()
+        .into_iter()
+        .map(|v| (v as f64 * scale_m) as f32)
+        .collect();
+    Ok(Image::from_vec(w, h, 1, data).expect("decoder returns w*h values"))
+}
+
+/// Writes a single-channel depth map in metres as 16-bit PNG in units of `scale_m`
+/// (rounded). Values that do not fit (negative, non-finite, above `65535 · scale_m`) are an
+/// error, never silently clamped.
+pub fn write_depth_png(
+    depth: &Image<f32>,
+    path: &Path,
+    scale_m: f64,
+) -> Result<(), ImageLoadError> {
+    if depth.channels() != 1 {
+        return Err(ImageLoadError::Channels {
+            path: path.to_path_buf(),
+            expected: 1,
+            actual: depth.channels(),
+        });
+    }
+    let w = depth.width();
+    let mut raw = Vec::with_capacity(depth.data().len());
+    for (i, &v) in depth.data().iter().enumerate() {
+        let units = (v as f64 / scale_m).round();
+        if !v.is_finite() || v < 0.0 || units > u16::MAX as f64 {
+            return Err(ImageLoadError::DepthOutOfRange {
+                path: path.to_path_buf(),
+                x: i % w.max(1),
+                y: i / w.max(1),
+                value: v,
+                reason: "16-bit PNG depth holds 0..=65535 units",
+            });
+        }
+        raw.push(units as u16);
+    }
+    let buf: ImageBuffer<Luma<u16>, Vec<u16>> =
+        ImageBuffer::from_raw(w as u32, depth.height() as u32, raw).expect("length checked");
+    write_encoded(path, |wr| buf.write_with_encoder(PngEncoder::new(wr)))
+}
+
+/// Reads a float `.npy` depth map of shape `(H, W)` or `(H, W, 1)`.
+pub fn read_depth_npy(path: &Path) -> Result<Image<f32>, ImageLoadError> {
+    let bytes = fs::read(path).map_err(|e| io_error(path, e))?;
+    parse_npy(&bytes).map_err(|reason| ImageLoadError::Npy {
+        path: path.to_path_buf(),
+        reason,
+    })
+}
+
+/// Writes a single-channel depth map as float32 `.npy` (`<f4`, C order, shape `(H, W)`),
+/// atomically. Non-finite or negative values are rejected.
+pub fn write_depth_npy(depth: &Image<f32>, path: &Path) -> Result<(), ImageLoadError> {
+    if depth.channels() != 1 {
+        return Err(ImageLoadError::Channels {
+            path: path.to_path_buf(),
+            expected: 1,
+            actual: depth.channels(),
+        });
+    }
+    let w = depth.width().max(1);
+    if let Some((i, &v)) = depth
+        .data()
+        .iter()
+        .enumerate()
+        .find(|(_, v)| !v.is_finite() || **v < 0.0)
+    {
+        return Err(ImageLoadError::DepthOutOfRange {
+            path: path.to_path_buf(),
+            x: i % w,
+            y: i / w,
+            value: v,
+            reason: "depth must be finite and non-negative (0 = no depth)",
+        });
+    }
+    let bytes = encode_npy_f32(depth.width(), depth.height(), depth.data());
+    crate::fsutil::write_atomic(path, &bytes).map_err(|e| io_error(path, e))
+}
+
+/// Serialises a `(height, width)` float32 array in `.npy` format version 1.0.
+pub fn encode_npy_f32(width: usize, height: usize, data: &[f32]) -> Vec<u8> {
+    let mut header =
+        format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({height}, {width}), }}");
+    // numpy pads the header with spaces so the data starts at a multiple of 64 bytes.
+    let unpadded = 10 + header.len() + 1;
+    header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + 4 * data.len());
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// The parts of an `.npy` header this crate uses.
+#[derive(Clone, Debug, PartialEq)]
+struct NpyHeader {
+    descr: String,
+    fortran_order: bool,
+    shape: Vec<usize>,
+    data_offset: usize,
+}
+
+fn parse_npy_header(bytes: &[u8]) -> Result<NpyHeader, String> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return Err("missing \\x93NUMPY magic".into());
+    }
+    let (len, start): (usize, usize) = match bytes[6] {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 => {
+            if bytes.len() < 12 {
+                return Err("truncated header length".into());
+            }
+            (
+                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+                12,
+            )
+        }
+        v => return Err(format!("unsupported format version {v}")),
+    };
+    let end = start
+        .checked_add(len)
+        .filter(|&e| e <= bytes.len())
+        .ok_or("truncated header")?;
+    let text = std::str::from_utf8(&bytes[start..end]).map_err(|_| "header is not UTF-8")?;
+    let descr = dict_value(text, "descr")?;
+    let descr = descr
+        .trim()
+        .trim_matches(|c| c == '\'' || c == '"')
+        .to_string();
+    let fortran_order = match dict_value(text, "fortran_order")?.trim() {
+        "True" => true,
+        "False" => false,
+        other => return Err(format!("bad fortran_order `{other}`")),
+    };
+    let shape_text = dict_value(text, "shape")?.trim();
+    let inner = shape_text
+        .strip_prefix('(')
+        .and_then(|s| s.strip_suffix(')'))
+        .ok_or_else(|| format!("bad shape `{shape_text}`"))?;
+    let shape = inner
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            s.parse::<usize>()
+                .map_err(|_| format!("bad shape `{shape_text}`"))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(NpyHeader {
+        descr,
+        fortran_order,
+        shape,
+        data_offset: end,
+    })
+}
+
+/// The text of `key`'s value in a Python dict literal (up to the next top-level comma).
+fn dict_value<'a>(text: &'a str, key: &str) -> Result<&'a str, String> {
+    let missing = || format!("header has no `{key}`");
+    let pos = text
+        .find(&format!("'{key}'"))
+        .or_else(|| text.find(&format!("\"{key}\"")))
+        .ok_or_else(missing)?;
+    let rest = &text[pos + key.len() + 2..];
+    let rest = rest.trim_start().strip_prefix(':').ok_or_else(missing)?;
+    let mut depth = 0i32;
+    for (i, ch) in rest.char_indices() {
+        match ch {
+            '(' => depth += 1,
+            ')' => depth -= 1,
+            ',' | '}' if depth == 0 => return Ok(&rest[..i]),
+            _ => {}
+        }
+    }
+    Err(missing())
+}
+
+/// Parses a float `.npy` depth map (`<f4` or `<f8`, C or Fortran order, shape `(H, W)` or
+/// `(H, W, 1)`) into a single-channel image. Never panics; the error says what is wrong.
+pub fn parse_npy(bytes: &[u8]) -> Result<Image<f32>, String> {
+    let header = parse_npy_header(bytes)?;
+    let (h, w) = match header.shape.as_slice() {
+        [h, w] | [h, w, 1] => (*h, *w),
+        other => return Err(format!("expected shape (H, W), got {other:?}")),
+    };
+    let item = match header.descr.as_str() {
+        "<f4" | "=f4" | "f4" => 4,
+        "<f8" | "=f8" | "f8" => 8,
+        other => {
+            return Err(format!(
+                "expected little-endian float32/64 data, got `{other}`"
+            ));
+        }
+    };
+    let n = h.checked_mul(w).ok_or("shape overflows")?;
+    let need = n.checked_mul(item).ok_or("shape overflows")?;
+    let data = &bytes[header.data_offset..];
+    if data.len() != need {
+        return Err(format!(
+            "shape ({h}, {w}) needs {need} data bytes, file has {}",
+            data.len()
+        ));
+    }
+    let values: Vec<f32> = if item == 4 {
+        data.chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect()
+    } else {
+        data.chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("chunk of 8")) as f32)
+            .collect()
+    };
+    let values = if header.fortran_order {
+        // Column-major: element (y, x) is at x * h + y.
+        let mut out = vec![0.0f32; n];
+        for y in 0..h {
+            for x in 0..w {
+                out[y * w + x] = values[x * h + y];
+            }
+        }
+        out
+    } else {
+        values
+    };
+    Image::from_vec(w, h, 1, values).map_err(|e| e.to_string())
+}
+
+/// Width and height of an `.npy` depth map, reading only its header.
+pub fn npy_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
+    use std::io::Read;
+    let npy_err = |reason: String| ImageLoadError::Npy {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let mut f = fs::File::open(path).map_err(|e| io_error(path, e))?;
+    let mut head = Vec::new();
+    Read::by_ref(&mut f)
+        .take(64 * 1024)
+        .read_to_end(&mut head)
+        .map_err(|e| io_error(path, e))?;
+    let header = parse_npy_header(&head).map_err(npy_err)?;
+    match header.shape.as_slice() {
+        [h, w] | [h, w, 1] => Ok((
+            u32::try_from(*w).map_err(|_| npy_err("width too large".into()))?,
+            u32::try_from(*h).map_err(|_| npy_err("height too large".into()))?,
+        )),
+        other => Err(npy_err(format!("expected shape (H, W), got {other:?}"))),
+    }
+}
+
+/// Width and height of a depth map file (`.npy` or PNG), reading only its header.
+pub fn depth_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("npy"))
+    {
+        npy_size(path)
+    } else {
+        image_size(path)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn npy_round_trip_and_alignment() {
+        let data: Vec<f32> = (0..12).map(|i| i as f32 * 0.5).collect();
+        let bytes = encode_npy_f32(4, 3, &data);
+        let header_end = 10 + u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+        assert_eq!(header_end % 64, 0);
+        let img = parse_npy(&bytes).unwrap();
+        assert_eq!(img.shape(), (4, 3, 1));
+        assert_eq!(img.data(), data.as_slice());
+    }
+
+    #[test]
+    fn fortran_order_is_transposed() {
+        let mut bytes = encode_npy_f32(2, 2, &[1.0, 3.0, 2.0, 4.0]);
+        let from = b"'fortran_order': False";
+        let at = bytes.windows(from.len()).position(|w| w == from).unwrap();
+        bytes[at..at + from.len()].copy_from_slice(b"'fortran_order': True ");
+        let img = parse_npy(&bytes).unwrap();
+        assert_eq!(img.data(), &[1.0, 2.0, 3.0, 4.0]);
+    }
+
+    #[test]
+    fn box_downscale_averages_blocks() {
+        let img = Image::from_vec(4, 2, 1, vec![0.0, 2.0, 4.0, 6.0, 2.0, 4.0, 6.0, 8.0]).unwrap();
+        let out = downscale_box(&img, 2);
+        assert_eq!(out.shape(), (2, 1, 1));
+        assert_eq!(out.data(), &[2.0, 6.0]);
+    }
+}
