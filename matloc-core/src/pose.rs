@@ -220,8 +220,8 @@ pub fn viewing_direction(cam_from_world: &Pose) -> Vector3<f64> {
 /// Returns `None` when `eye == target` or the viewing direction is parallel to `up`.
 pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>, up: &Vector3<f64>) -> Option<Pose> {
     let forward = (target - eye).try_normalize(1e-12)?;
-    // OpenCV: y points down in the image, so the camera's y axis is -up projected.
-    let right = forward.cross(&-up).try_normalize(1e-9)?;
+    // OpenCV axes are right-handed with y down: x = y × z = (−up) × forward = forward × up.
+    let right = forward.cross(up).try_normalize(1e-9)?;
     let down = forward.cross(&right);
     // Rows of cam_from_world rotation are the camera axes in world coordinates.
     let r = Matrix3::from_rows(&[right.transpose(), down.transpose(), forward.transpose()]);
@@ -299,6 +299,15 @@ mod tests {
                 prop_assert!((camera_center(&p) - eye).norm() < 1e-9);
             }
         }
+    }
+
+    #[test]
+    fn look_at_keeps_image_up_towards_up() {
+        // Looking north with z up: image right is east, image down is world -z.
+        let p = look_at(&Point3::origin(), &Point3::new(0.0, 10.0, 0.0), &Vector3::z()).unwrap();
+        assert!((p.transform_vector(&Vector3::x()) - Vector3::x()).norm() < 1e-12);
+        assert!((p.inverse_transform_vector(&Vector3::x()) - Vector3::x()).norm() < 1e-12);
+        assert!((p.inverse_transform_vector(&Vector3::y()) + Vector3::z()).norm() < 1e-12);
     }
 
     #[test]
