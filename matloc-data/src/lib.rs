@@ -12,5 +12,6 @@ pub mod dataset;
 pub mod fsutil;
 pub mod images;
 pub mod nerfstudio;
+pub mod synth;
 
 pub use dataset::{Dataset, Frame, Split};

@@ -1,0 +1,573 @@
+//! Procedural materials: gradient noise, prefiltered patterns and the albedo of every surface.
+//!
+//! Aliasing is removed at the source rather than by brute-force supersampling: every pattern
+//! takes the world-space footprint `fw` of the pixel (metres) and drops or box-filters detail
+//! finer than it. A NeRF cannot fit per-view aliasing noise, and a 1-sample-per-pixel texture
+//! lookup is what keeps the renderer at tens of images per second on two cores.
+
+use super::rng::{hash3, unit};
+
+/// Linear RGB.
+pub(crate) type Rgb = [f32; 3];
+
+#[inline]
+fn fade(t: f32) -> f32 {
+    t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
+}
+
+#[inline]
+fn lerp(a: f32, b: f32, t: f32) -> f32 {
+    a + (b - a) * t
+}
+
+/// Unit-ish gradient directions for 2D noise (8 compass directions).
+const G2: [(f32, f32); 8] = [
+    (1.0, 0.0),
+    (-1.0, 0.0),
+    (0.0, 1.0),
+    (0.0, -1.0),
+    (0.707_106_8, 0.707_106_8),
+    (-0.707_106_8, 0.707_106_8),
+    (0.707_106_8, -0.707_106_8),
+    (-0.707_106_8, -0.707_106_8),
+];
+
+/// 2D gradient noise, roughly in `[-1, 1]`, zero mean.
+#[inline]
+pub(crate) fn noise2(x: f32, y: f32, seed: u32) -> f32 {
+    let xf = x.floor();
+    let yf = y.floor();
+    let (ix, iy) = (xf as i32, yf as i32);
+    let (fx, fy) = (x - xf, y - yf);
+    let g = |i: i32, j: i32, dx: f32, dy: f32| {
+        let (gx, gy) = G2[(hash3(i, j, 0, seed) & 7) as usize];
+        gx * dx + gy * dy
+    };
+    let n00 = g(ix, iy, fx, fy);
+    let n10 = g(ix + 1, iy, fx - 1.0, fy);
+    let n01 = g(ix, iy + 1, fx, fy - 1.0);
+    let n11 = g(ix + 1, iy + 1, fx - 1.0, fy - 1.0);
+    let u = fade(fx);
+    let v = fade(fy);
+    1.4 * lerp(lerp(n00, n10, u), lerp(n01, n11, u), v)
+}
+
+/// The 12 cube-edge gradients of classic 3D gradient noise.
+const G3: [(f32, f32, f32); 12] = [
+    (1.0, 1.0, 0.0),
+    (-1.0, 1.0, 0.0),
+    (1.0, -1.0, 0.0),
+    (-1.0, -1.0, 0.0),
+    (1.0, 0.0, 1.0),
+    (-1.0, 0.0, 1.0),
+    (1.0, 0.0, -1.0),
+    (-1.0, 0.0, -1.0),
+    (0.0, 1.0, 1.0),
+    (0.0, -1.0, 1.0),
+    (0.0, 1.0, -1.0),
+    (0.0, -1.0, -1.0),
+];
+
+/// 3D gradient noise, roughly in `[-1, 1]`, zero mean.
+#[inline]
+pub(crate) fn noise3(x: f32, y: f32, z: f32, seed: u32) -> f32 {
+    let (xf, yf, zf) = (x.floor(), y.floor(), z.floor());
+    let (ix, iy, iz) = (xf as i32, yf as i32, zf as i32);
+    let (fx, fy, fz) = (x - xf, y - yf, z - zf);
+    let g = |i: i32, j: i32, k: i32, dx: f32, dy: f32, dz: f32| {
+        let (gx, gy, gz) = G3[(hash3(i, j, k, seed) % 12) as usize];
+        gx * dx + gy * dy + gz * dz
+    };
+    let (u, v, w) = (fade(fx), fade(fy), fade(fz));
+    let x00 = lerp(
+        g(ix, iy, iz, fx, fy, fz),
+        g(ix + 1, iy, iz, fx - 1.0, fy, fz),
+        u,
+    );
+    let x10 = lerp(
+        g(ix, iy + 1, iz, fx, fy - 1.0, fz),
+        g(ix + 1, iy + 1, iz, fx - 1.0, fy - 1.0, fz),
+        u,
+    );
+    let x01 = lerp(
+        g(ix, iy, iz + 1, fx, fy, fz - 1.0),
+        g(ix + 1, iy, iz + 1, fx - 1.0, fy, fz - 1.0),
+        u,
+    );
+    let x11 = lerp(
+        g(ix, iy + 1, iz + 1, fx, fy - 1.0, fz - 1.0),
+        g(ix + 1, iy + 1, iz + 1, fx - 1.0, fy - 1.0, fz - 1.0),
+        u,
+    );
+    lerp(lerp(x00, x10, v), lerp(x01, x11, v), w)
+}
+
+/// Weight of a noise octave of frequency `freq` (1/m) seen through a footprint `fw` (m):
+/// 1 well below Nyquist, fading to 0 once a period spans fewer than ~2 footprints.
+#[inline]
+fn octave_weight(freq: f32, fw: f32) -> f32 {
+    let r = freq * fw;
+    (2.0 - 4.0 * r).clamp(0.0, 1.0)
+}
+
+/// Fractal sum of 2D gradient noise starting at `freq` (1/m), prefiltered for footprint `fw`.
+///
+/// Normalised by the full amplitude sum, so filtered-out detail lowers the contrast the way a
+/// true average over the footprint would, instead of being renormalised back.
+pub(crate) fn fbm2(x: f32, y: f32, freq: f32, octaves: u32, seed: u32, fw: f32) -> f32 {
+    let mut sum = 0.0;
+    let mut amp = 1.0;
+    let mut norm = 0.0;
+    let mut f = freq;
+    let mut active = true;
+    for o in 0..octaves {
+        norm += amp;
+        if active {
+            let w = octave_weight(f, fw);
+            if w <= 0.0 {
+                active = false;
+            } else {
+                sum += amp * w * noise2(x * f, y * f, seed.wrapping_add(o * 7919));
+            }
+        }
+        amp *= 0.5;
+        f *= 2.0;
+    }
+    sum / norm
+}
+
+/// Fractal sum of 3D gradient noise; see [`fbm2`].
+pub(crate) fn fbm3(p: [f32; 3], freq: f32, octaves: u32, seed: u32, fw: f32) -> f32 {
+    let mut sum = 0.0;
+    let mut amp = 1.0;
+    let mut norm = 0.0;
+    let mut f = freq;
+    let mut active = true;
+    for o in 0..octaves {
+        norm += amp;
+        if active {
+            let w = octave_weight(f, fw);
+            if w <= 0.0 {
+                active = false;
+            } else {
+                sum += amp * w * noise3(p[0] * f, p[1] * f, p[2] * f, seed.wrapping_add(o * 7919));
+            }
+        }
+        amp *= 0.5;
+        f *= 2.0;
+    }
+    sum / norm
+}
+
+/// Fraction of the box `[x − fw/2, x + fw/2]` covered by `[lo, hi]`: a box-filtered step pulse.
+#[inline]
+pub(crate) fn pulse(x: f32, lo: f32, hi: f32, fw: f32) -> f32 {
+    let h = 0.5 * fw.max(1e-4);
+    ((x + h).clamp(lo, hi) - (x - h).clamp(lo, hi)) / (2.0 * h)
+}
+
+/// Box-filtered pulse `[lo, hi]` repeated with `period`, evaluated at `x` already reduced to
+/// `[0, period)`; the neighbouring copies matter when the footprint straddles a cell border.
+#[inline]
+pub(crate) fn periodic_pulse(x: f32, lo: f32, hi: f32, period: f32, fw: f32) -> f32 {
+    (pulse(x, lo, hi, fw)
+        + pulse(x, lo - period, hi - period, fw)
+        + pulse(x, lo + period, hi + period, fw))
+    .min(1.0)
+}
+
+/// How much of a pattern with feature size `size` survives footprint `fw`: 1 when resolved,
+/// 0 once a feature is smaller than about one footprint (then use the pattern's mean).
+#[inline]
+pub(crate) fn detail(size: f32, fw: f32) -> f32 {
+    (2.0 * size / fw.max(1e-6) - 1.0).clamp(0.0, 1.0)
+}
+
+#[inline]
+pub(crate) fn mix(a: Rgb, b: Rgb, t: f32) -> Rgb {
+    [
+        lerp(a[0], b[0], t),
+        lerp(a[1], b[1], t),
+        lerp(a[2], b[2], t),
+    ]
+}
+
+#[inline]
+pub(crate) fn scale(a: Rgb, s: f32) -> Rgb {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+
+/// Linear RGB from 8-bit sRGB-ish values (gamma 2.2 is close enough for albedo palettes).
+pub(crate) fn srgb(r: u8, g: u8, b: u8) -> Rgb {
+    let f = |c: u8| (c as f32 / 255.0).powf(2.2);
+    [f(r), f(g), f(b)]
+}
+
+/// Per-cell random value in `[0, 1)` for cell `(i, j)` of a pattern.
+#[inline]
+pub(crate) fn cell_rand(i: i32, j: i32, seed: u32) -> f32 {
+    unit(hash3(i, j, 17, seed))
+}
+
+/// Multiplicative brightness jitter `1 + amount * noise`, for breaking up flat colours.
+#[inline]
+pub(crate) fn vary(c: Rgb, amount: f32, n: f32) -> Rgb {
+    scale(c, (1.0 + amount * n).max(0.05))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn noise_is_bounded_and_continuous() {
+        let mut max = 0.0f32;
+        for i in 0..2000 {
+            let x = i as f32 * 0.173 - 50.0;
+            let y = i as f32 * 0.311 + 3.0;
+            let n = noise2(x, y, 3);
+            let m = noise3(x, y, 0.5 * x, 9);
+            max = max.max(n.abs()).max(m.abs());
+            assert!((noise2(x + 1e-3, y, 3) - n).abs() < 0.02);
+        }
+        assert!(max < 1.6 && max > 0.3, "max {max}");
+        // Integer lattice points are zero for gradient noise.
+        assert_eq!(noise2(4.0, -7.0, 1), 0.0);
+    }
+
+    #[test]
+    fn prefilter_drops_contrast_with_footprint() {
+        let var = |fw: f32| {
+            let mut s = 0.0;
+            for i in 0..4000 {
+                let v = fbm2(i as f32 * 0.37, i as f32 * 0.11, 4.0, 5, 2, fw);
+                s += v * v;
+            }
+            s / 4000.0
+        };
+        assert!(var(0.0) > var(0.1));
+        assert!(var(0.1) > var(1.0));
+        assert_eq!(var(10.0), 0.0);
+    }
+
+    #[test]
+    fn pulse_integrates_box() {
+        assert_eq!(pulse(0.5, 0.0, 1.0, 0.1), 1.0);
+        assert_eq!(pulse(2.0, 0.0, 1.0, 0.1), 0.0);
+        assert!((pulse(1.0, 0.0, 1.0, 0.2) - 0.5).abs() < 1e-6);
+        assert!((periodic_pulse(0.0, 0.05, 0.95, 1.0, 0.2) - 0.5).abs() < 1e-6);
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Surface albedo of every scene part.
+
+use nalgebra::Vector3;
+
+use super::raycast::TERRAIN;
+use super::world::{Building, Class, RoofMat, SIDEWALK_M, WallKind, World};
+
+#[inline]
+fn smooth(e0: f32, e1: f32, x: f32) -> f32 {
+    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+impl World {
+    /// Linear albedo at world point `p` with geometric normal `n` on primitive `prim`, prefiltered
+    /// for a pixel footprint of `fw` metres.
+    pub(crate) fn albedo(&self, p: &Vector3<f64>, n: &Vector3<f64>, prim: u32, fw: f32) -> Rgb {
+        if prim == TERRAIN {
+            return self.ground_albedo(p.x, p.y, fw);
+        }
+        let s = self.noise_seed;
+        let pf = [p.x as f32, p.y as f32, p.z as f32];
+        match self.classes[prim as usize] {
+            Class::Body(b) => {
+                let bd = &self.buildings[b as usize];
+                if n.z > 0.7 {
+                    self.flat_roof_albedo(bd, p, fw)
+                } else {
+                    self.facade_albedo(bd, p, n, fw, true)
+                }
+            }
+            Class::PitchedRoof(b) => {
+                let bd = &self.buildings[b as usize];
+                if n.z.abs() > 0.3 {
+                    self.pitched_roof_albedo(bd, p, n, fw)
+                } else {
+                    self.facade_albedo(bd, p, n, fw, false)
+                }
+            }
+            Class::RoofUnit(b) => {
+                let bd = &self.buildings[b as usize];
+                let base = srgb(175, 178, 180);
+                let ribs = if n.z > 0.7 {
+                    let l = bd.local(p.x, p.y);
+                    let u = (l[0] as f32).rem_euclid(0.3);
+                    1.0 - 0.35 * periodic_pulse(u, 0.0, 0.08, 0.3, fw)
+                } else {
+                    1.0
+                };
+                vary(scale(base, ribs), 0.15, fbm3(pf, 1.5, 3, s ^ 0x51, fw))
+            }
+            Class::Rock(col, seed) => {
+                let big = fbm3(pf, 1.2, 4, seed, fw);
+                let speck = fbm3(pf, 9.0, 2, seed ^ 3, fw);
+                let c = vary(col, 0.35, big);
+                // Dust settles on upward faces.
+                let dust = (0.35 * n.z.max(0.0) as f32) * (0.6 + 0.4 * speck);
+                vary(
+                    mix(c, srgb(170, 160, 140), dust.clamp(0.0, 1.0)),
+                    0.25,
+                    speck,
+                )
+            }
+            Class::Crown(col, seed) => {
+                let leaves = fbm3(pf, 2.5, 5, seed, fw);
+                // Clumps of leaves with dark gaps between them.
+                let clump = smooth(-0.35, 0.35, leaves);
+                let c = mix(scale(col, 0.45), scale(col, 1.25), clump);
+                let hue = fbm3(pf, 0.4, 2, seed ^ 9, fw);
+                mix(c, srgb(120, 125, 50), (0.3 * hue).clamp(0.0, 0.3))
+            }
+            Class::Trunk => vary(srgb(85, 65, 45), 0.3, fbm3(pf, 4.0, 3, s ^ 0x77, fw)),
+        }
+    }
+
+    fn ground_albedo(&self, x: f64, y: f64, fw: f32) -> Rgb {
+        let s = self.noise_seed;
+        let (xf, yf) = (x as f32, y as f32);
+        let natural = || {
+            let region = fbm2(xf, yf, 1.0 / 45.0, 3, s ^ 0x10, fw);
+            let patch = fbm2(xf, yf, 1.0 / 7.0, 3, s ^ 0x11, fw);
+            let fine = fbm2(xf, yf, 1.5, 4, s ^ 0x12, fw);
+            let grass = mix(
+                srgb(70, 100, 40),
+                srgb(118, 135, 62),
+                smooth(-0.4, 0.4, patch),
+            );
+            let grass = vary(grass, 0.45, fine);
+            let soil = vary(srgb(125, 100, 72), 0.35, fine + 0.5 * patch);
+            let mut c = mix(grass, soil, smooth(0.05, 0.35, region + 0.3 * patch));
+            for f in &self.rubble {
+                let d = ((x - f.center[0]).powi(2) + (y - f.center[1]).powi(2)).sqrt() as f32;
+                let w = 1.0
+                    - smooth(
+                        f.radius as f32,
+                        1.35 * f.radius as f32 + 2.0,
+                        d + 3.0 * patch,
+                    );
+                if w > 0.0 {
+                    let grit = fbm2(xf, yf, 4.0, 3, s ^ 0x13, fw);
+                    let dusty = vary(srgb(145, 135, 118), 0.35, grit + 0.5 * patch);
+                    c = mix(c, dusty, w);
+                }
+            }
+            c
+        };
+        let Some(q) = self.road_index.query(&self.roads, x, y) else {
+            return natural();
+        };
+        let (d, sl, w) = (q.d as f32, q.s as f32, q.half_width as f32);
+        let ad = d.abs();
+        if ad > w {
+            // Sidewalk: 1 m concrete slabs aligned with the road, then a kerb.
+            let u = sl.rem_euclid(1.0);
+            let v = (ad - w).rem_euclid(1.0);
+            let slab = hash3(
+                sl.div_euclid(1.0) as i32,
+                (ad - w).div_euclid(1.0) as i32,
+                3,
+                s,
+            );
+            let groove =
+                periodic_pulse(u, 0.0, 0.04, 1.0, fw).max(periodic_pulse(v, 0.0, 0.04, 1.0, fw));
+            let k = detail(0.04, fw);
+            let mut c = vary(srgb(158, 154, 146), 0.12, unit(slab) * 2.0 - 1.0);
+            c = vary(c, 0.2, fbm2(xf, yf, 2.0, 3, s ^ 0x20, fw));
+            c = scale(c, 1.0 - 0.3 * groove * k);
+            let kerb = pulse(ad - w, 0.0, 0.18, fw);
+            let c = mix(c, srgb(200, 198, 190), kerb);
+            // Grass creeps over the outer edge.
+            let edge = smooth(
+                SIDEWALK_M as f32 - 0.4,
+                SIDEWALK_M as f32,
+                ad - w + 0.3 * fbm2(xf, yf, 1.0, 2, s, fw),
+            );
+            return mix(c, natural(), edge);
+        }
+        let grain = fbm2(xf, yf, 3.0, 4, s ^ 0x30, fw);
+        let wear = fbm2(xf, yf, 1.0 / 6.0, 3, s ^ 0x31, fw);
+        let mut c = vary(srgb(72, 72, 75), 0.25, grain + 0.8 * wear);
+        // Repair patches and cracks give the asphalt mid-scale structure.
+        let patch = fbm2(xf, yf, 1.0 / 9.0, 2, s ^ 0x32, fw);
+        c = mix(c, srgb(50, 50, 53), smooth(0.25, 0.3, patch));
+        let crack = fbm2(xf, yf, 0.7, 3, s ^ 0x33, fw).abs();
+        c = scale(
+            c,
+            1.0 - 0.5 * (1.0 - smooth(0.0, 0.03, crack)) * detail(0.05, fw),
+        );
+        let paint = srgb(230, 230, 220);
+        let edge_line = pulse(ad, w - 0.5, w - 0.35, fw);
+        let dash =
+            pulse(d, -0.08, 0.08, fw) * periodic_pulse(sl.rem_euclid(9.0), 0.0, 3.0, 9.0, fw);
+        let worn = 0.75 + 0.25 * grain;
+        mix(c, scale(paint, worn), (edge_line + dash).min(1.0) * 0.9)
+    }
+
+    fn facade_albedo(
+        &self,
+        bd: &Building,
+        p: &Vector3<f64>,
+        n: &Vector3<f64>,
+        fw: f32,
+        windows: bool,
+    ) -> Rgb {
+        let s = bd.seed;
+        let l = bd.local(p.x, p.y);
+        // Horizontal coordinate along the wall from its left corner, and the wall's length.
+        let nl = bd.local(p.x + n.x, p.y + n.y);
+        let nl = [nl[0] - bd.local(p.x, p.y)[0], nl[1] - bd.local(p.x, p.y)[1]];
+        let (u, len, face) = if nl[0].abs() > nl[1].abs() {
+            (
+                l[1] * nl[0].signum() + bd.half[1],
+                2.0 * bd.half[1],
+                if nl[0] > 0.0 { 0 } else { 1 },
+            )
+        } else {
+            (
+                -l[0] * nl[1].signum() + bd.half[0],
+                2.0 * bd.half[0],
+                if nl[1] > 0.0 { 2 } else { 3 },
+            )
+        };
+        let (u, len) = (u as f32, len as f32);
+        let v = (p.z - bd.base_z) as f32 - 0.5;
+        let fseed = s.wrapping_add(face * 101);
+        let stain = fbm2(u * 0.7, v * 0.18, 1.0, 4, fseed ^ 0x40, fw);
+        let blotch = fbm2(u, v, 0.6, 4, fseed ^ 0x41, fw);
+        let mut c = match bd.wall_kind {
+            WallKind::Brick => {
+                let (bw, bh) = (0.5f32, 0.2f32);
+                let row = (v / bh).floor();
+                let uu = u + if row as i32 % 2 == 0 { 0.0 } else { 0.5 * bw };
+                let col = (uu / bw).floor();
+                let r = cell_rand(col as i32, row as i32, fseed);
+                let k = detail(bh, fw);
+                let mortar = periodic_pulse(uu.rem_euclid(bw), 0.0, 0.03, bw, fw)
+                    .max(periodic_pulse(v.rem_euclid(bh), 0.0, 0.03, bh, fw));
+                let brick = vary(bd.wall_col, 0.25 * k, 2.0 * r - 1.0);
+                let c = mix(
+                    brick,
+                    srgb(175, 170, 160),
+                    0.15 * (1.0 - k) + mortar * k * 0.8,
+                );
+                vary(c, 0.12, blotch)
+            }
+            WallKind::Plaster => vary(bd.wall_col, 0.18, blotch + 0.6 * stain),
+            WallKind::Concrete => {
+                let ph = bd.floor_h as f32;
+                let pw = 3.0f32;
+                let joint = periodic_pulse(u.rem_euclid(pw), 0.0, 0.05, pw, fw)
+                    .max(periodic_pulse(v.rem_euclid(ph), 0.0, 0.05, ph, fw));
+                let panel = cell_rand((u / pw).floor() as i32, (v / ph).floor() as i32, fseed);
+                let c = vary(bd.wall_col, 0.1, 2.0 * panel - 1.0);
+                scale(vary(c, 0.15, blotch + 0.8 * stain), 1.0 - 0.35 * joint)
+            }
+        };
+        // Darker, dirtier plinth near the ground.
+        c = scale(c, 0.8 + 0.2 * smooth(0.0, 1.2, v));
+        if !windows {
+            return c;
+        }
+        let height = (bd.eave_z - bd.base_z) as f32 - 0.5;
+        let sp = bd.win_spacing as f32;
+        let ncol = (len / sp).floor();
+        if ncol < 1.0 {
+            return c;
+        }
+        let margin = 0.5 * (len - ncol * sp);
+        let uc = u - margin;
+        if uc < 0.0 || uc > ncol * sp {
+            return c;
+        }
+        let fh = bd.floor_h as f32;
+        let floor = (v / fh).floor();
+        if v < 0.0 || (floor + 1.0) * fh > height + 0.3 {
+            return c;
+        }
+        let wf = bd.win_frac as f32;
+        let cu = uc.rem_euclid(sp);
+        let cv = v.rem_euclid(fh);
+        let (u0, u1) = (0.5 * sp * (1.0 - wf), 0.5 * sp * (1.0 + wf));
+        let (v0, v1) = if floor == 0.0 { (0.7, 2.5) } else { (0.9, 2.4) };
+        let frame_cov = pulse(cu, u0 - 0.1, u1 + 0.1, fw) * pulse(cv, v0 - 0.1, v1 + 0.12, fw);
+        let glass_cov = pulse(cu, u0, u1, fw) * pulse(cv, v0, v1, fw);
+        let wi = hash3((uc / sp).floor() as i32, floor as i32, face as i32, s);
+        // Per-window variation (curtains, lights, reflections baked as albedo) is fixed in the
+        // world, so every view sees the same value.
+        let g = vary(bd.glass_col, 0.5, 2.0 * unit(wi) - 1.0);
+        let g = mix(g, srgb(150, 155, 160), 0.25 * (1.0 - cv / fh));
+        let c = mix(c, bd.trim_col, frame_cov);
+        mix(c, g, glass_cov)
+    }
+
+    fn flat_roof_albedo(&self, bd: &Building, p: &Vector3<f64>, fw: f32) -> Rgb {
+        let l = bd.local(p.x, p.y);
+        let edge = (bd.half[0] - l[0].abs()).min(bd.half[1] - l[1].abs()) as f32;
+        let (x, y) = (p.x as f32, p.y as f32);
+        let grit = fbm2(x, y, 5.0, 3, bd.seed ^ 0x50, fw);
+        let stains = fbm2(x, y, 0.25, 4, bd.seed ^ 0x51, fw);
+        let mut c = vary(bd.roof_col, 0.25, grit + 0.8 * stains);
+        // Membrane seams every 2 m in one direction.
+        let seam = periodic_pulse((l[0] as f32).rem_euclid(2.0), 0.0, 0.06, 2.0, fw);
+        c = scale(c, 1.0 - 0.2 * seam);
+        // Parapet coping around the edge.
+        mix(c, srgb(200, 195, 185), pulse(edge, -1.0, 0.35, fw))
+    }
+
+    fn pitched_roof_albedo(
+        &self,
+        bd: &Building,
+        p: &Vector3<f64>,
+        n: &Vector3<f64>,
+        fw: f32,
+    ) -> Rgb {
+        // Coordinates on the roof plane: u along the eave, v up the slope.
+        let t = Vector3::new(-n.y, n.x, 0.0)
+            .try_normalize(1e-9)
+            .unwrap_or(Vector3::x());
+        let b = n.cross(&t);
+        let c0 = Vector3::new(bd.center[0], bd.center[1], bd.eave_z);
+        let (u, v) = ((p - c0).dot(&t) as f32, (p - c0).dot(&b) as f32);
+        let (x, y) = (p.x as f32, p.y as f32);
+        let dirt = fbm2(x, y, 0.3, 4, bd.seed ^ 0x60, fw);
+        match bd.roof_mat {
+            RoofMat::Tiles => {
+                let (tw, th) = (0.3f32, 0.35f32);
+                let row = (v / th).floor();
+                let uu = u + if row as i32 % 2 == 0 { 0.0 } else { 0.5 * tw };
+                let r = cell_rand((uu / tw).floor() as i32, row as i32, bd.seed);
+                let k = detail(th, fw);
+                let shadow = periodic_pulse(v.rem_euclid(th), 0.0, 0.07, th, fw);
+                let c = vary(bd.roof_col, 0.3 * k, 2.0 * r - 1.0);
+                let c = scale(c, 1.0 - 0.35 * shadow * k - 0.12 * (1.0 - k));
+                // Moss and soot patches.
+                let moss = smooth(0.2, 0.5, dirt);
+                vary(mix(c, srgb(80, 85, 55), 0.5 * moss), 0.15, dirt)
+            }
+            RoofMat::Metal => {
+                let rib = periodic_pulse(u.rem_euclid(0.6), 0.0, 0.06, 0.6, fw);
+                let c = scale(bd.roof_col, 1.0 + 0.35 * rib);
+                let rust = smooth(0.15, 0.5, dirt);
+                vary(
+                    mix(c, srgb(120, 70, 40), 0.4 * rust),
+                    0.15,
+                    fbm2(u, v, 2.0, 3, bd.seed, fw),
+                )
+            }
+            RoofMat::Gravel => vary(bd.roof_col, 0.3, fbm2(x, y, 4.0, 4, bd.seed, fw) + dirt),
+        }
+    }
+}
