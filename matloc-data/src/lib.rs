@@ -8,10 +8,15 @@
 //! - [`synth`]: the deterministic synthetic aerial world, its renderer and survey capture.
 //! - [`fsutil`]: atomic file writes (temporary file + rename).
 
+pub mod colmap;
 pub mod dataset;
+pub mod error;
 pub mod fsutil;
 pub mod images;
 pub mod nerfstudio;
+pub mod summary;
 pub mod synth;
 
 pub use dataset::{Dataset, Frame, Split};
+pub use error::DataError;
+pub use summary::read_dataset;
