@@ -61,6 +61,7 @@ mod poly;
 pub mod ransac;
 pub mod refine;
 pub mod solver;
+pub mod synthetic;
 
 pub use epnp::epnp;
 pub use error::PnpError;

@@ -1,0 +1,147 @@
+#!/usr/bin/env python3
+"""Peer comparison for matloc-pnp: PoseLib and OpenCV on the correspondence sets written by
+`cargo run --release -p matloc-pnp --example pnp_peer`, same inlier threshold for everyone.
+
+Usage: python3 bench/pnp/compare.py <out-dir>   (reads cases.json and ours.json)
+
+Success: translation error <= 0.1 m and rotation error <= 0.1 deg (camera centres; geodesic
+angle of R_est R_gt^T). Timings are wall-clock per solve, one thread per solver.
+"""
+import json
+import os
+import sys
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import poselib  # noqa: E402
+
+cv2.setNumThreads(1)
+
+T_MAX_M = 0.1
+R_MAX_DEG = 0.1
+OPENCV_MAX_ITERS = 10000
+CONFIDENCE = 0.9999
+
+
+def errors(R, t, R_gt, t_gt):
+    c = -R.T @ t
+    c_gt = -R_gt.T @ t_gt
+    t_err = float(np.linalg.norm(c - c_gt))
+    cos = (np.trace(R @ R_gt.T) - 1.0) / 2.0
+    r_err = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return t_err, r_err
+
+
+def run_poselib(case, pixels, points, threshold):
+    cam = case["camera"]
+    camera = {
+        "model": "PINHOLE",
+        "width": cam["width"],
+        "height": cam["height"],
+        "params": [cam["fx"], cam["fy"], cam["cx"], cam["cy"]],
+    }
+    start = time.perf_counter()
+    pose, _info = poselib.estimate_absolute_pose(
+        pixels, points, camera, {"max_reproj_error": threshold}, {}
+    )
+    seconds = time.perf_counter() - start
+    return seconds, np.asarray(pose.R), np.asarray(pose.t)
+
+
+def run_opencv(case, pixels, points, threshold, flag):
+    cam = case["camera"]
+    K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
+    start = time.perf_counter()
+    ok, rvec, tvec, _inl = cv2.solvePnPRansac(
+        points,
+        pixels,
+        K,
+        None,
+        iterationsCount=OPENCV_MAX_ITERS,
+        reprojectionError=threshold,
+        confidence=CONFIDENCE,
+        flags=flag,
+    )
+    seconds = time.perf_counter() - start
+    if not ok:
+        return seconds, None, None
+    R, _ = cv2.Rodrigues(rvec)
+    return seconds, R, tvec.reshape(3)
+
+
+def summarise(times, errs):
+    t = np.array([e[0] if e is not None else np.inf for e in errs])
+    r = np.array([e[1] if e is not None else np.inf for e in errs])
+    success = float(np.mean((t <= T_MAX_M) & (r <= R_MAX_DEG)))
+    return {
+        "time_ms": 1e3 * float(np.median(times)),
+        "success": success,
+        "t_med_m": float(np.median(t)),
+        "r_med_deg": float(np.median(r)),
+    }
+
+
+def main():
+    out_dir = sys.argv[1] if len(sys.argv) > 1 else "bench/pnp/out"
+    with open(os.path.join(out_dir, "cases.json")) as f:
+        cases_doc = json.load(f)
+    with open(os.path.join(out_dir, "ours.json")) as f:
+        ours_doc = json.load(f)
+    threshold = cases_doc["threshold_px"]
+    ours_by_name = {s["name"]: s["results"] for s in ours_doc["settings"]}
+
+    rows = []
+    for setting in cases_doc["settings"]:
+        name = setting["name"]
+        ours = ours_by_name[name]
+        peers = {"poselib": ([], []), "opencv_p3p": ([], []), "opencv_sqpnp": ([], [])}
+        for case in setting["cases"]:
+            pixels = np.ascontiguousarray(case["pixels"], dtype=np.float64)
+            points = np.ascontiguousarray(case["points"], dtype=np.float64)
+            R_gt = np.array(case["gt_R"])
+            t_gt = np.array(case["gt_t"])
+            runs = {
+                "poselib": run_poselib(case, pixels, points, threshold),
+                "opencv_p3p": run_opencv(case, pixels, points, threshold, cv2.SOLVEPNP_P3P),
+                "opencv_sqpnp": run_opencv(case, pixels, points, threshold, cv2.SOLVEPNP_SQPNP),
+            }
+            for key, (seconds, R, t) in runs.items():
+                peers[key][0].append(seconds)
+                peers[key][1].append(None if R is None else errors(R, t, R_gt, t_gt))
+        our_times = [r["time_s"] for r in ours]
+        our_errs = [
+            None if r["t_err_m"] is None else (r["t_err_m"], r["r_err_deg"]) for r in ours
+        ]
+        row = {"name": name, "cases": len(ours), "ours": summarise(our_times, our_errs)}
+        for key, (times, errs) in peers.items():
+            row[key] = summarise(times, errs)
+        rows.append(row)
+
+    print(f"threshold {threshold} px, 1 px noise, success = t <= {T_MAX_M} m and r <= {R_MAX_DEG} deg")
+    header = (
+        "| setting | cases | ours ms | PoseLib ms | ours/PoseLib | OpenCV P3P ms | OpenCV SQPnP ms "
+        "| success ours / PoseLib / P3P / SQPnP | median t (cm) ours / PoseLib / P3P / SQPnP "
+        "| median r (deg) ours / PoseLib / P3P / SQPnP |"
+    )
+    print(header)
+    print("|" + "---|" * 10)
+    keys = ["ours", "poselib", "opencv_p3p", "opencv_sqpnp"]
+    for row in rows:
+        ratio = row["ours"]["time_ms"] / row["poselib"]["time_ms"]
+        succ = " / ".join(f"{100 * row[k]['success']:.0f} %" for k in keys)
+        tmed = " / ".join(f"{100 * row[k]['t_med_m']:.1f}" for k in keys)
+        rmed = " / ".join(f"{row[k]['r_med_deg']:.3f}" for k in keys)
+        print(
+            f"| {row['name']} | {row['cases']} | {row['ours']['time_ms']:.2f} | "
+            f"{row['poselib']['time_ms']:.2f} | {ratio:.2f} | {row['opencv_p3p']['time_ms']:.2f} | "
+            f"{row['opencv_sqpnp']['time_ms']:.2f} | {succ} | {tmed} | {rmed} |"
+        )
+    with open(os.path.join(out_dir, "summary.json"), "w") as f:
+        json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
