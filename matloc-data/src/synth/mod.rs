@@ -74,17 +74,12 @@ pub enum SynthError {
         /// The underlying error.
         source: std::io::Error,
     },
-    /// PNG encoding failed.
-    #[error("cannot encode {path}: {message}")]
-    Encode {
-        /// The image file.
-        path: PathBuf,
-        /// Encoder message.
-        message: String,
-    },
+    /// Writing an image or depth file failed.
+    #[error(transparent)]
+    Image(Box<crate::images::ImageLoadError>),
     /// Writing `transforms.json` failed.
-    #[error("cannot write the nerfstudio dataset: {0}")]
-    Dataset(String),
+    #[error(transparent)]
+    Dataset(Box<crate::nerfstudio::NerfstudioError>),
 }
 
 /// Everything that defines a synthetic dataset: scene, capture and rendering.

@@ -5,7 +5,6 @@ use nalgebra::{Point2, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::raycast::TERRAIN;
 use super::rng::{hash3, unit};
 use super::texture::Rgb;
 use super::world::World;
@@ -218,26 +217,4 @@ impl World {
             depth: Image::from_vec(w, h, 1, depth).expect("buffer sized w*h"),
         }
     }
-
-    /// The primitive id hit by the centre ray of a pixel (`None` for sky); used by tests.
-    #[cfg(test)]
-    pub(crate) fn pixel_prim(
-        &self,
-        camera: &Camera,
-        cam_from_world: &Pose,
-        col: usize,
-        row: usize,
-    ) -> Option<u32> {
-        let world_from_cam = cam_from_world.inverse();
-        let b = camera.unproject(Point2::new(col as f64 + 0.5, row as f64 + 0.5))?;
-        let d = world_from_cam.rotation * b;
-        self.trace(&world_from_cam.translation.vector, &d)
-            .map(|h| h.prim)
-    }
-}
-
-/// True when `prim` is the terrain id (for tests in sibling modules).
-#[cfg(test)]
-pub(crate) fn is_terrain(prim: u32) -> bool {
-    prim == TERRAIN
 }

@@ -176,11 +176,41 @@ pub(crate) fn periodic_pulse(x: f32, lo: f32, hi: f32, period: f32, fw: f32) -> 
     .min(1.0)
 }
 
-/// How much of a pattern with feature size `size` survives footprint `fw`: 1 when resolved,
-/// 0 once a feature is smaller than about one footprint (then use the pattern's mean).
+/// How much of a periodic pattern with period `period` survives footprint `fw`: 1 while a
+/// period spans at least 4 footprints, 0 below 2 (then callers blend to the pattern's mean).
 #[inline]
-pub(crate) fn detail(size: f32, fw: f32) -> f32 {
-    (2.0 * size / fw.max(1e-6) - 1.0).clamp(0.0, 1.0)
+pub(crate) fn detail(period: f32, fw: f32) -> f32 {
+    octave_weight(1.0 / period.max(1e-6), fw)
+}
+
+/// Scattered round spots on a jittered grid of `cell`-sized cells: each cell holds a spot with
+/// probability `prob`, radius in `[rmin, rmax]` (`rmax < cell / 2`). Returns the box-filtered
+/// coverage and a per-spot random value for its colour.
+#[inline]
+pub(crate) fn spots(
+    x: f32,
+    y: f32,
+    cell: f32,
+    prob: f32,
+    rmin: f32,
+    rmax: f32,
+    seed: u32,
+    fw: f32,
+) -> (f32, f32) {
+    let (ci, cj) = ((x / cell).floor(), (y / cell).floor());
+    let h = hash3(ci as i32, cj as i32, 91, seed);
+    if unit(h) >= prob {
+        return (0.0, 0.0);
+    }
+    let h2 = hash3(ci as i32, cj as i32, 92, seed);
+    let r = rmin + (rmax - rmin) * unit(h2);
+    let room = 0.5 * cell - r;
+    let cx = (ci + 0.5) * cell + room * (2.0 * unit(h2.rotate_left(11)) - 1.0);
+    let cy = (cj + 0.5) * cell + room * (2.0 * unit(h2.rotate_left(22)) - 1.0);
+    let d = ((x - cx) * (x - cx) + (y - cy) * (y - cy)).sqrt();
+    // Spots far below the footprint would flicker: fade them to their area-averaged tint.
+    let cov = pulse(d, -r, r, fw) * detail(4.0 * r, fw);
+    (cov, unit(hash3(ci as i32, cj as i32, 93, seed)))
 }
 
 #[inline]
@@ -252,7 +282,7 @@ mod tests {
 
     #[test]
     fn pulse_integrates_box() {
-        assert_eq!(pulse(0.5, 0.0, 1.0, 0.1), 1.0);
+        assert!((pulse(0.5, 0.0, 1.0, 0.1) - 1.0).abs() < 1e-6);
         assert_eq!(pulse(2.0, 0.0, 1.0, 0.1), 0.0);
         assert!((pulse(1.0, 0.0, 1.0, 0.2) - 0.5).abs() < 1e-6);
         assert!((periodic_pulse(0.0, 0.05, 0.95, 1.0, 0.2) - 0.5).abs() < 1e-6);
@@ -341,14 +371,27 @@ impl World {
         let natural = || {
             let region = fbm2(xf, yf, 1.0 / 45.0, 3, s ^ 0x10, fw);
             let patch = fbm2(xf, yf, 1.0 / 7.0, 3, s ^ 0x11, fw);
-            let fine = fbm2(xf, yf, 1.5, 4, s ^ 0x12, fw);
+            let clump = fbm2(xf, yf, 0.6, 3, s ^ 0x14, fw);
+            let fine = fbm2(xf, yf, 2.5, 3, s ^ 0x12, fw);
             let grass = mix(
-                srgb(70, 100, 40),
-                srgb(118, 135, 62),
+                srgb(62, 92, 36),
+                srgb(125, 140, 64),
                 smooth(-0.4, 0.4, patch),
             );
-            let grass = vary(grass, 0.45, fine);
-            let soil = vary(srgb(125, 100, 72), 0.35, fine + 0.5 * patch);
+            let grass = vary(grass, 0.55, 1.2 * clump + 0.5 * fine);
+            // Shrubs and flower/weed spots: blob features at the 1 m scale.
+            let (shrub, sr) = spots(xf, yf, 3.0, 0.35, 0.3, 1.1, s ^ 0x15, fw);
+            let shrub_col = mix(srgb(40, 62, 25), srgb(95, 105, 40), sr);
+            let grass = mix(grass, shrub_col, shrub);
+            let (flower, fr) = spots(xf, yf, 1.3, 0.2, 0.15, 0.35, s ^ 0x16, fw);
+            let grass = mix(
+                grass,
+                mix(srgb(200, 190, 120), srgb(170, 150, 150), fr),
+                0.7 * flower,
+            );
+            let soil = vary(srgb(125, 100, 72), 0.4, 1.2 * clump + fine + 0.5 * patch);
+            let (stone, st) = spots(xf, yf, 1.5, 0.3, 0.12, 0.4, s ^ 0x17, fw);
+            let soil = mix(soil, scale(srgb(170, 160, 145), 0.8 + 0.4 * st), stone);
             let mut c = mix(grass, soil, smooth(0.05, 0.35, region + 0.3 * patch));
             for f in &self.rubble {
                 let d = ((x - f.center[0]).powi(2) + (y - f.center[1]).powi(2)).sqrt() as f32;
@@ -359,9 +402,12 @@ impl World {
                         d + 3.0 * patch,
                     );
                 if w > 0.0 {
-                    let grit = fbm2(xf, yf, 4.0, 3, s ^ 0x13, fw);
-                    let dusty = vary(srgb(145, 135, 118), 0.35, grit + 0.5 * patch);
-                    c = mix(c, dusty, w);
+                    let grit = fbm2(xf, yf, 2.0, 4, s ^ 0x13, fw);
+                    let dusty = vary(srgb(145, 135, 118), 0.45, grit + clump + 0.5 * patch);
+                    // Small debris fragments lying flat in the dust.
+                    let (frag, fr) = spots(xf, yf, 0.9, 0.45, 0.1, 0.3, s ^ 0x18, fw);
+                    let frag_col = mix(srgb(150, 80, 60), srgb(90, 88, 85), fr);
+                    c = mix(c, mix(dusty, frag_col, frag), w);
                 }
             }
             c
@@ -383,7 +429,7 @@ impl World {
             );
             let groove =
                 periodic_pulse(u, 0.0, 0.04, 1.0, fw).max(periodic_pulse(v, 0.0, 0.04, 1.0, fw));
-            let k = detail(0.04, fw);
+            let k = detail(1.0, fw);
             let mut c = vary(srgb(158, 154, 146), 0.12, unit(slab) * 2.0 - 1.0);
             c = vary(c, 0.2, fbm2(xf, yf, 2.0, 3, s ^ 0x20, fw));
             c = scale(c, 1.0 - 0.3 * groove * k);
@@ -399,14 +445,33 @@ impl World {
         }
         let grain = fbm2(xf, yf, 3.0, 4, s ^ 0x30, fw);
         let wear = fbm2(xf, yf, 1.0 / 6.0, 3, s ^ 0x31, fw);
-        let mut c = vary(srgb(72, 72, 75), 0.25, grain + 0.8 * wear);
-        // Repair patches and cracks give the asphalt mid-scale structure.
-        let patch = fbm2(xf, yf, 1.0 / 9.0, 2, s ^ 0x32, fw);
-        c = mix(c, srgb(50, 50, 53), smooth(0.25, 0.3, patch));
+        let mottle = fbm2(xf, yf, 0.7, 3, s ^ 0x34, fw);
+        let mut c = vary(srgb(74, 74, 77), 0.3, grain + 0.8 * wear + 1.2 * mottle);
+        // Rectangular repair patches (older, lighter or fresh, darker) in road coordinates.
+        let cell = 8.0f32;
+        let ci = sl.div_euclid(cell) as i32;
+        let side = if d >= 0.0 { 1 } else { 0 };
+        let hp = hash3(ci, side, 5, s);
+        if unit(hp) < 0.45 {
+            let len = 2.0 + 4.0 * unit(hp.rotate_left(8));
+            let s0 = (cell - len) * unit(hp.rotate_left(16));
+            let d0 = 0.3 + (w - 1.5) * 0.5 * unit(hp.rotate_left(24));
+            let d1 = (d0 + 1.0 + 2.0 * unit(hp.rotate_left(4))).min(w - 0.6);
+            let cov = pulse(sl.rem_euclid(cell), s0, s0 + len, fw) * pulse(ad, d0, d1, fw);
+            let tone = if unit(hp.rotate_left(12)) < 0.5 {
+                srgb(52, 52, 55)
+            } else {
+                srgb(98, 97, 95)
+            };
+            c = mix(c, vary(tone, 0.2, grain), cov);
+        }
+        // Oil stains along the middle of each lane.
+        let (oil, _) = spots(sl, ad - 0.5 * w, 2.5, 0.35, 0.2, 0.6, s ^ 0x35, fw);
+        c = scale(c, 1.0 - 0.35 * oil);
         let crack = fbm2(xf, yf, 0.7, 3, s ^ 0x33, fw).abs();
         c = scale(
             c,
-            1.0 - 0.5 * (1.0 - smooth(0.0, 0.03, crack)) * detail(0.05, fw),
+            1.0 - 0.5 * (1.0 - smooth(0.0, 0.03, crack)) * detail(0.5, fw),
         );
         let paint = srgb(230, 230, 220);
         let edge_line = pulse(ad, w - 0.5, w - 0.35, fw);
@@ -519,7 +584,9 @@ impl World {
         let (x, y) = (p.x as f32, p.y as f32);
         let grit = fbm2(x, y, 5.0, 3, bd.seed ^ 0x50, fw);
         let stains = fbm2(x, y, 0.25, 4, bd.seed ^ 0x51, fw);
-        let mut c = vary(bd.roof_col, 0.25, grit + 0.8 * stains);
+        let mut c = vary(bd.roof_col, 0.35, grit + 1.2 * stains);
+        let (puddle, pr) = spots(x, y, 4.0, 0.4, 0.5, 1.6, bd.seed ^ 0x52, fw);
+        c = scale(c, 1.0 - (0.25 + 0.2 * pr) * puddle);
         // Membrane seams every 2 m in one direction.
         let seam = periodic_pulse((l[0] as f32).rem_euclid(2.0), 0.0, 0.06, 2.0, fw);
         c = scale(c, 1.0 - 0.2 * seam);
@@ -553,9 +620,21 @@ impl World {
                 let shadow = periodic_pulse(v.rem_euclid(th), 0.0, 0.07, th, fw);
                 let c = vary(bd.roof_col, 0.3 * k, 2.0 * r - 1.0);
                 let c = scale(c, 1.0 - 0.35 * shadow * k - 0.12 * (1.0 - k));
-                // Moss and soot patches.
-                let moss = smooth(0.2, 0.5, dirt);
-                vary(mix(c, srgb(80, 85, 55), 0.5 * moss), 0.15, dirt)
+                // Moss and soot patches, and per-course colour drift from replaced tiles.
+                let moss = smooth(0.1, 0.45, dirt);
+                let course = cell_rand(0, (v / (4.0 * th)).floor() as i32, bd.seed ^ 7);
+                let c = vary(c, 0.2, 2.0 * course - 1.0);
+                let c = mix(c, srgb(80, 85, 55), 0.6 * moss);
+                // Roof windows on a coarse grid.
+                let (gu, gv) = (3.5f32, 3.0f32);
+                let hw = hash3((u / gu).floor() as i32, (v / gv).floor() as i32, 8, bd.seed);
+                let win = if unit(hw) < 0.25 {
+                    pulse(u.rem_euclid(gu), 1.0, 2.0, fw) * pulse(v.rem_euclid(gv), 0.8, 2.1, fw)
+                } else {
+                    0.0
+                };
+                let c = mix(c, scale(bd.glass_col, 0.8), win);
+                vary(c, 0.2, dirt)
             }
             RoofMat::Metal => {
                 let rib = periodic_pulse(u.rem_euclid(0.6), 0.0, 0.06, 0.6, fw);

@@ -85,68 +85,13 @@ pub fn synthesize(
 }
 
 pub(crate) fn write_png(img: &matloc_core::Image<f32>, path: &Path) -> Result<(), SynthError> {
-    let bytes: Vec<u8> = img
-        .data()
-        .iter()
-        .map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
-        .collect();
-    let mut out = Vec::new();
-    let enc = image::codecs::png::PngEncoder::new(&mut out);
-    image::ImageEncoder::write_image(
-        enc,
-        &bytes,
-        img.width() as u32,
-        img.height() as u32,
-        image::ExtendedColorType::Rgb8,
-    )
-    .map_err(|e| SynthError::Encode {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    crate::fsutil::write_atomic(path, &out).map_err(io_err(path))
+    crate::images::write_png_rgb(img, path).map_err(|e| SynthError::Image(Box::new(e)))
 }
 
 fn write_npy(depth: &matloc_core::Image<f32>, path: &Path) -> Result<(), SynthError> {
-    let mut header = format!(
-        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}), }}",
-        depth.height(),
-        depth.width()
-    );
-    // Magic (6) + version (2) + header length (2) + header, padded to a multiple of 64.
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + 4 * depth.data().len());
-    out.extend_from_slice(b"\x93NUMPY\x01\x00");
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for v in depth.data() {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    crate::fsutil::write_atomic(path, &out).map_err(io_err(path))
+    crate::images::write_depth_npy(depth, path).map_err(|e| SynthError::Image(Box::new(e)))
 }
 
 fn write_transforms(dataset: &Dataset, path: &Path) -> Result<(), SynthError> {
-    let frames: Vec<serde_json::Value> = dataset
-        .frames
-        .iter()
-        .map(|f| {
-            let m = matloc_core::pose::opengl_from_cam_from_world(&f.cam_from_world);
-            let rows: Vec<Vec<f64>> = (0..4)
-                .map(|r| (0..4).map(|c| m[(r, c)]).collect())
-                .collect();
-            serde_json::json!({
-                "file_path": f.image_path,
-                "depth_file_path": f.depth_path,
-                "transform_matrix": rows,
-                "split": f.split,
-                "fl_x": f.camera.fx, "fl_y": f.camera.fy, "cx": f.camera.cx, "cy": f.camera.cy,
-                "w": f.camera.width, "h": f.camera.height,
-            })
-        })
-        .collect();
-    let json = serde_json::json!({ "camera_model": "PINHOLE", "frames": frames, "metadata": dataset.metadata });
-    let bytes = serde_json::to_vec_pretty(&json).map_err(|e| SynthError::Dataset(e.to_string()))?;
-    crate::fsutil::write_atomic(path, &bytes).map_err(io_err(path))
+    crate::nerfstudio::write_nerfstudio(dataset, path).map_err(|e| SynthError::Dataset(Box::new(e)))
 }
