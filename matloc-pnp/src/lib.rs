@@ -52,6 +52,9 @@
 //! assert_eq!(result.stats.num_inliers, 150);
 //! ```
 
+// `!(x > 0.0)` is deliberate throughout: it rejects NaN along with non-positive values.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod epnp;
 pub mod error;
 pub mod estimator;
