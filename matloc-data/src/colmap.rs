@@ -587,8 +587,13 @@ impl ColmapModel {
                     id
                 }
             };
-            let name = frame
+            // "./images/a.png" and "images/a.png" are the same image to COLMAP users.
+            let clean: PathBuf = frame
                 .image_path
+                .components()
+                .filter(|c| !matches!(c, std::path::Component::CurDir))
+                .collect();
+            let name = clean
                 .to_str()
                 .ok_or_else(|| ColmapError::Unrepresentable {
                     frame: i,
@@ -914,24 +919,16 @@ impl<'a> Reader<'a> {
         Ok(f64::from_le_bytes(self.array(rec, field)?))
     }
 
-    /// A count of records of at least `min_size` bytes each; rejects counts the remaining
-    /// bytes cannot hold, so a corrupt count never triggers a huge allocation.
-    fn count(&mut self, rec: Rec, field: &str, min_size: usize) -> Result<usize, ColmapError> {
-        let offset = self.pos;
-        let n = self.u64(rec, field)?;
-        let fits = (self.remaining() / min_size) as u64;
-        if n > fits {
-            return Err(ColmapError::Truncated {
-                path: self.path.to_path_buf(),
-                record: describe(rec, field),
-                offset,
-                needed: usize::try_from(n)
-                    .ok()
-                    .and_then(|n| n.checked_mul(min_size))
-                    .unwrap_or(usize::MAX),
-            });
-        }
-        Ok(n as usize)
+    /// A record count. It is not trusted for allocation: see [`Reader::capacity`].
+    fn count(&mut self, rec: Rec, field: &str) -> Result<u64, ColmapError> {
+        self.u64(rec, field)
+    }
+
+    /// Capacity to reserve for `n` records of at least `min_size` bytes: never more than the
+    /// remaining bytes can hold, so a corrupt count cannot trigger a huge allocation (the
+    /// reads then fail at the field where the data ends).
+    fn capacity(&self, n: u64, min_size: usize) -> usize {
+        n.min((self.remaining() / min_size) as u64) as usize
     }
 
     fn cstring(&mut self, rec: Rec, field: &str) -> Result<String, ColmapError> {
@@ -980,9 +977,9 @@ pub fn parse_cameras_binary(
     path: &Path,
 ) -> Result<BTreeMap<u32, ColmapCamera>, ColmapError> {
     let mut r = Reader::new(bytes, path);
-    let n = r.count(HEADER, "number of cameras", 24)?;
+    let n = r.count(HEADER, "number of cameras")?;
     let mut cameras = BTreeMap::new();
-    for index in 0..n as u64 {
+    for index in 0..n {
         let rec = Rec {
             kind: "camera",
             index,
@@ -1035,9 +1032,9 @@ pub fn parse_images_binary(
     path: &Path,
 ) -> Result<BTreeMap<u32, ColmapImage>, ColmapError> {
     let mut r = Reader::new(bytes, path);
-    let n = r.count(HEADER, "number of images", 73)?;
+    let n = r.count(HEADER, "number of images")?;
     let mut images = BTreeMap::new();
-    for index in 0..n as u64 {
+    for index in 0..n {
         let rec = Rec {
             kind: "image",
             index,
@@ -1053,8 +1050,8 @@ pub fn parse_images_binary(
         }
         let camera_id = r.u32(rec, "camera_id")?;
         let name = r.cstring(rec, "name")?;
-        let num_points = r.count(rec, "number of points2D", 24)?;
-        let mut points2d = Vec::with_capacity(num_points);
+        let num_points = r.count(rec, "number of points2D")?;
+        let mut points2d = Vec::with_capacity(r.capacity(num_points, 24));
         for _ in 0..num_points {
             let x = r.f64(rec, "points2D x")?;
             let y = r.f64(rec, "points2D y")?;
@@ -1095,9 +1092,9 @@ pub fn parse_points3d_binary(
     path: &Path,
 ) -> Result<BTreeMap<u64, Point3D>, ColmapError> {
     let mut r = Reader::new(bytes, path);
-    let n = r.count(HEADER, "number of points", 51)?;
+    let n = r.count(HEADER, "number of points")?;
     let mut points = BTreeMap::new();
-    for index in 0..n as u64 {
+    for index in 0..n {
         let rec = Rec {
             kind: "point3D",
             index,
@@ -1106,8 +1103,8 @@ pub fn parse_points3d_binary(
         let xyz = [r.f64(rec, "xyz")?, r.f64(rec, "xyz")?, r.f64(rec, "xyz")?];
         let rgb = [r.u8(rec, "rgb")?, r.u8(rec, "rgb")?, r.u8(rec, "rgb")?];
         let error = r.f64(rec, "error")?;
-        let len = r.count(rec, "track length", 8)?;
-        let mut track = Vec::with_capacity(len);
+        let len = r.count(rec, "track length")?;
+        let mut track = Vec::with_capacity(r.capacity(len, 8));
         for _ in 0..len {
             track.push(TrackElement {
                 image_id: r.u32(rec, "track image_id")?,
