@@ -74,9 +74,9 @@ pub(crate) fn rubble() -> SynthConfig {
             buildings: 12,
             building_size_m: [8.0, 30.0],
             building_height_m: [5.0, 15.0],
-            rubble_fields: 9,
-            rubble_radius_m: [12.0, 30.0],
-            rocks_per_field: 1200,
+            rubble_fields: 10,
+            rubble_radius_m: [15.0, 35.0],
+            rocks_per_field: 2500,
             trees: 40,
             ..WorldConfig::default()
         },

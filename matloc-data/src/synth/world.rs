@@ -405,6 +405,8 @@ pub(crate) enum Class {
 pub(crate) struct RubbleField {
     pub center: [f64; 2],
     pub radius: f64,
+    /// Height of the debris mound at its centre (part of the terrain), m.
+    pub pile_h: f64,
 }
 
 /// The generated scene. Immutable after [`World::generate`]; rendering and ray queries take
@@ -521,7 +523,6 @@ impl World {
         let half = 0.5 * config.extent_m;
         let outer = half + config.margin_m;
 
-        let terrain = make_terrain(config, root.fork(2).u32(), half, outer);
         let roads = make_roads(config, &mut root.fork(3), half, outer);
         let road_index = RoadIndex::build(&roads, [-outer, -outer], [outer, outer]);
         let road_dist = |x: f64, y: f64| {
@@ -541,12 +542,19 @@ impl World {
                     .iter()
                     .any(|f: &RubbleField| dist2(f.center, c).sqrt() < f.radius + radius);
                 if !clash && road_dist(c[0], c[1]) > 0.5 * radius {
-                    rubble.push(RubbleField { center: c, radius });
+                    // Low enough that the mound cannot shadow itself (slope < 35°).
+                    let pile_h = rng.range(0.08, 0.16) * radius;
+                    rubble.push(RubbleField {
+                        center: c,
+                        radius,
+                        pile_h,
+                    });
                     break;
                 }
             }
         }
 
+        let terrain = make_terrain(config, root.fork(2).u32(), half, outer, &rubble);
         let mut b = Builder {
             prims: Vec::new(),
             classes: Vec::new(),
@@ -671,7 +679,13 @@ fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
     (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)
 }
 
-fn make_terrain(config: &WorldConfig, seed: u32, half: f64, outer: f64) -> Terrain {
+fn make_terrain(
+    config: &WorldConfig,
+    seed: u32,
+    half: f64,
+    outer: f64,
+    rubble: &[RubbleField],
+) -> Terrain {
     let cell = config.terrain_cell_m;
     let n = ((2.0 * outer) / cell).ceil().max(1.0) as usize;
     let x0 = -0.5 * n as f64 * cell;
@@ -685,7 +699,15 @@ fn make_terrain(config: &WorldConfig, seed: u32, half: f64, outer: f64) -> Terra
             let edge = x.abs().max(y.abs());
             let w = 1.0 - smoothstep(half + 0.2 * (outer - half), outer - cell, edge);
             let n = fbm2(x as f32, y as f32, 1.0 / 160.0, 4, seed, 0.0) as f64;
-            heights.push(w * config.terrain_relief_m * 1.4 * n);
+            let mut h = w * config.terrain_relief_m * 1.4 * n;
+            // Debris mounds are terrain, so pieces rest on a closed surface, not in the air.
+            for f in rubble {
+                let rr2 = dist2(f.center, [x, y]) / (f.radius * f.radius);
+                if rr2 < 1.0 {
+                    h += f.pile_h * (1.0 - rr2) * (1.0 - rr2);
+                }
+            }
+            heights.push(h);
         }
     }
     let hmin = heights.iter().copied().fold(0.0, f64::min);
@@ -836,7 +858,7 @@ fn make_buildings(
                     RoofMat::Tiles => ROOF_TILE_PALETTE[rng.index(4)],
                     RoofMat::Metal => ROOF_METAL_PALETTE[rng.index(4)],
                     RoofMat::Gravel => {
-                        let v = rng.range(120.0, 175.0) as u8;
+                        let v = rng.range(100.0, 150.0) as u8;
                         (v, v, v.saturating_sub(5))
                     }
                 };
@@ -976,12 +998,10 @@ fn random_rotation(rng: &mut Rng) -> Rotation3<f64> {
 }
 
 fn add_rubble(b: &mut Builder, f: &RubbleField, n: usize, terrain: &Terrain, rng: &mut Rng) {
-    let pile_h = rng.range(1.5, 3.5);
     for _ in 0..n {
         let r = f.radius * rng.f64().powf(0.6);
         let a = rng.range(0.0, std::f64::consts::TAU);
         let (x, y) = (f.center[0] + r * a.cos(), f.center[1] + r * a.sin());
-        let rr = r / f.radius;
         // Log-normal sizes: many fist-to-chair sized pieces, a few slabs.
         let s = (0.45 * (0.6 * rng.normal()).exp()).clamp(0.12, 2.2);
         let half = [
@@ -989,9 +1009,8 @@ fn add_rubble(b: &mut Builder, f: &RubbleField, n: usize, terrain: &Terrain, rng
             s * rng.range(0.5, 1.2),
             s * rng.range(0.25, 0.8),
         ];
-        let zc = terrain.height_at(x, y)
-            + pile_h * (1.0 - rr * rr) * rng.range(0.3, 1.0)
-            + 0.2 * half[2];
+        // Partly embedded in the mound.
+        let zc = terrain.height_at(x, y) + half[2] * rng.range(-0.4, 0.6);
         let c = Vector3::new(x, y, zc);
         let rot = random_rotation(rng);
         let axes = [rot * Vector3::x(), rot * Vector3::y(), rot * Vector3::z()];
@@ -1073,11 +1092,28 @@ fn add_trees(
                 rng.range(80.0, 115.0) as u8,
                 rng.range(30.0, 55.0) as u8,
             );
+            let seed = rng.u32();
             b.ellipsoid(
                 Vector3::new(p[0], p[1], cz),
                 Vector3::new(rad, rad * rng.range(0.85, 1.15), rz),
-                Class::Crown(leaf, rng.u32()),
+                Class::Crown(leaf, seed),
             );
+            // Smaller lobes break the silhouette so crowns read as foliage, not balls.
+            for _ in 0..2 + rng.index(3) {
+                let a = rng.range(0.0, std::f64::consts::TAU);
+                let lr = rad * rng.range(0.45, 0.7);
+                let off = rad * rng.range(0.45, 0.75);
+                let lc = Vector3::new(
+                    p[0] + off * a.cos(),
+                    p[1] + off * a.sin(),
+                    cz + rz * rng.range(-0.3, 0.45),
+                );
+                b.ellipsoid(
+                    lc,
+                    Vector3::new(lr, lr, lr * rng.range(0.8, 1.1)),
+                    Class::Crown(leaf, seed),
+                );
+            }
             placed.push((p, rad));
             break;
         }
