@@ -33,6 +33,13 @@ impl SceneBox {
         q
     }
 
+    /// Density (1/m) of one unit of normalised density: `2 / mean extent`, the length of the
+    /// box's `[-1,1]` frame per metre. See `NerfactoField::density_scale`.
+    pub fn density_scale(&self) -> f32 {
+        let e: f32 = (0..3).map(|a| self.max[a] - self.min[a]).sum::<f32>() / 3.0;
+        2.0 / e
+    }
+
     /// Whether every extent is positive and finite.
     pub fn is_valid(&self) -> bool {
         (0..3).all(|a| {

@@ -114,7 +114,6 @@ impl TrainCache {
 
 /// Mutable per-chunk views of a [`TrainCache`] so chunks can be filled in parallel.
 struct ChunkMut<'a> {
-    unit: &'a [[f32; 3]],
     dirs: &'a [[f32; 3]],
     app: &'a [u32],
     enc: &'a mut [f32],
@@ -188,6 +187,16 @@ impl NerfactoField {
             col,
             appearance,
         }
+    }
+
+    /// Density unit conversion (1/m per unit of `trunc_exp(raw)`): `2 / mean box extent`.
+    ///
+    /// The network's density lives in the box-normalised frame (box = `[-1,1]³`), as in
+    /// nerfstudio where scenes are rescaled to unit size; converting here keeps the initial
+    /// optical depth across the box ≈ 1 whatever the scene's size in metres, so a 500 m
+    /// aerial scene does not start out opaque.
+    pub fn density_scale(&self) -> f32 {
+        self.config.scene_box.density_scale()
     }
 
     /// The configuration the field was built with.
@@ -311,6 +320,7 @@ impl NerfactoField {
             app: Vec::new(),
         };
         let fallback = self.fallback_embedding();
+        self.grid.encode(&unit, &mut c.enc);
         {
             let chunks = Self::split_chunks(&mut c, &unit, dirs, &app, ci);
             chunks
@@ -339,7 +349,7 @@ impl NerfactoField {
         let mut h2 = c.h2.chunks_mut(k * HIDDEN);
         let mut rgb = c.rgb.chunks_mut(k * 3);
         let mut density = c.density.chunks_mut(k);
-        for ((u, d), a) in unit.chunks(k).zip(dirs.chunks(k)).zip(app.chunks(k)) {
+        for ((_, d), a) in unit.chunks(k).zip(dirs.chunks(k)).zip(app.chunks(k)) {
             // All iterators have exactly as many chunks as `unit`, so these never run dry.
             let (
                 Some(enc),
@@ -364,7 +374,6 @@ impl NerfactoField {
                 break;
             };
             out.push(ChunkMut {
-                unit: u,
                 dirs: d,
                 app: a,
                 enc,
@@ -382,7 +391,7 @@ impl NerfactoField {
 
     fn forward_chunk(&self, ch: ChunkMut<'_>, ci: usize, fallback: &[f32]) {
         let a_dim = self.config.appearance_dim;
-        self.grid.encode_chunk(ch.unit, ch.enc);
+        let scale = self.density_scale();
         self.geo[0].forward::<HIDDEN>(ch.enc, ch.geo_h, true);
         self.geo[1].forward::<GEO_OUT>(ch.geo_h, ch.geo_out, false);
         for (i, row) in ch.col_in.chunks_exact_mut(ci).enumerate() {
@@ -394,7 +403,7 @@ impl NerfactoField {
                 j => &self.appearance[j as usize * a_dim..(j as usize + 1) * a_dim],
             };
             row[SH_DIM + F_MLP_DIM..].copy_from_slice(emb);
-            ch.density[i] = trunc_exp(ch.geo_out[i * GEO_OUT]);
+            ch.density[i] = scale * trunc_exp(ch.geo_out[i * GEO_OUT]);
         }
         self.col[0].forward::<HIDDEN>(ch.col_in, ch.h1, true);
         self.col[1].forward::<HIDDEN>(ch.h1, ch.h2, true);
@@ -418,8 +427,15 @@ impl NerfactoField {
         check_len("d_rgb", 3 * n, d_rgb.len())?;
         let ci = self.config.colour_input_dim();
         let a_dim = self.config.appearance_dim;
+        let scale = self.density_scale();
         let k = MLP_CHUNK;
         let mut d_enc = vec![0f32; n * F_POS_DIM];
+        let wt_geo = [self.geo[0].transposed(), self.geo[1].transposed()];
+        let wt_col = [
+            self.col[0].transposed(),
+            self.col[1].transposed(),
+            self.col[2].transposed(),
+        ];
         let new_acc = || BwdAcc {
             geo: [self.geo[0].zero_grad(), self.geo[1].zero_grad()],
             col: [
@@ -451,17 +467,17 @@ impl NerfactoField {
                 let h1 = &cache.h1[s * HIDDEN..e * HIDDEN];
                 let col_in = &cache.col_in[s * ci..e * ci];
                 let d_h2 = &mut acc.d_h2[..m * HIDDEN];
-                self.col[2].backward(h2, &d_z3[..3 * m], Some(d_h2), &mut acc.col[2]);
+                self.col[2].backward_with(h2, &d_z3[..3 * m], Some(d_h2), &wt_col[2], &mut acc.col[2]);
                 relu_mask(h2, d_h2);
                 let d_h1 = &mut acc.d_h1[..m * HIDDEN];
-                self.col[1].backward(h1, d_h2, Some(d_h1), &mut acc.col[1]);
+                self.col[1].backward_with(h1, d_h2, Some(d_h1), &wt_col[1], &mut acc.col[1]);
                 relu_mask(h1, d_h1);
                 let d_col_in = &mut acc.d_col_in[..m * ci];
-                self.col[0].backward(col_in, d_h1, Some(d_col_in), &mut acc.col[0]);
+                self.col[0].backward_with(col_in, d_h1, Some(d_col_in), &wt_col[0], &mut acc.col[0]);
                 let d_geo_out = &mut acc.d_geo_out[..m * GEO_OUT];
                 for i in 0..m {
                     let raw = cache.geo_out[(s + i) * GEO_OUT];
-                    d_geo_out[i * GEO_OUT] = d_density[s + i] * trunc_exp_grad(raw);
+                    d_geo_out[i * GEO_OUT] = d_density[s + i] * scale * trunc_exp_grad(raw);
                     d_geo_out[i * GEO_OUT + 1..(i + 1) * GEO_OUT].copy_from_slice(
                         &d_col_in[i * ci + SH_DIM..i * ci + SH_DIM + F_MLP_DIM],
                     );
@@ -475,10 +491,10 @@ impl NerfactoField {
                 }
                 let geo_h = &cache.geo_h[s * HIDDEN..e * HIDDEN];
                 let d_geo_h = &mut acc.d_geo_h[..m * HIDDEN];
-                self.geo[1].backward(geo_h, d_geo_out, Some(d_geo_h), &mut acc.geo[1]);
+                self.geo[1].backward_with(geo_h, d_geo_out, Some(d_geo_h), &wt_geo[1], &mut acc.geo[1]);
                 relu_mask(geo_h, d_geo_h);
                 let enc = &cache.enc[s * F_POS_DIM..e * F_POS_DIM];
-                self.geo[0].backward(enc, d_geo_h, Some(d_enc_chunk), &mut acc.geo[0]);
+                self.geo[0].backward_with(enc, d_geo_h, Some(d_enc_chunk), &wt_geo[0], &mut acc.geo[0]);
                 acc
             })
             .map(|a| (a.geo, a.col, a.app))
@@ -509,16 +525,6 @@ impl NerfactoField {
         Ok(())
     }
 
-    /// Geometry forward for a chunk: contraction, hash grid, geometry MLP.
-    fn geometry_chunk(&self, pts: &[[f32; 3]], unit: &mut [[f32; 3]], enc: &mut [f32], h: &mut [f32], out: &mut [f32]) {
-        let sb = self.config.scene_box;
-        for (u, p) in unit.iter_mut().zip(pts) {
-            *u = contract_to_unit(&sb, *p);
-        }
-        self.grid.encode_chunk(unit, enc);
-        self.geo[0].forward::<HIDDEN>(enc, h, true);
-        self.geo[1].forward::<GEO_OUT>(h, out, false);
-    }
 }
 
 fn relu_mask(h: &[f32], d: &mut [f32]) {
@@ -563,41 +569,31 @@ impl FeatureField for NerfactoField {
         }
         let nd = dims.len();
         let k = INFER_CHUNK;
+        let scale = self.density_scale();
+        let sb = self.config.scene_box;
+        let unit: Vec<[f32; 3]> = points
+            .par_iter()
+            .map(|p| contract_to_unit(&sb, *p))
+            .collect();
+        let mut enc = vec![0f32; n * F_POS_DIM];
+        self.grid.encode(&unit, &mut enc);
         // An empty `features` still needs one (empty) chunk per point chunk to zip with.
-        let feat_chunk = (k * nd).max(1);
-        let mut empty: Vec<&mut [f32]> = Vec::new();
         let feat_chunks: Vec<&mut [f32]> = if nd == 0 {
-            for _ in 0..n.div_ceil(k) {
-                empty.push(&mut []);
-            }
-            empty
+            (0..n.div_ceil(k)).map(|_| &mut [][..]).collect()
         } else {
-            features.chunks_mut(feat_chunk).collect()
+            features.chunks_mut(k * nd).collect()
         };
-        points
-            .par_chunks(k)
+        enc.par_chunks(k * F_POS_DIM)
             .zip(density.par_chunks_mut(k))
             .zip(feat_chunks.into_par_iter())
             .for_each_init(
-                || {
-                    (
-                        vec![[0f32; 3]; k],
-                        vec![0f32; k * F_POS_DIM],
-                        vec![0f32; k * HIDDEN],
-                        vec![0f32; k * GEO_OUT],
-                    )
-                },
-                |(unit, enc, h, out), ((pts, dens), feat)| {
-                    let m = pts.len();
-                    self.geometry_chunk(
-                        pts,
-                        &mut unit[..m],
-                        &mut enc[..m * F_POS_DIM],
-                        &mut h[..m * HIDDEN],
-                        &mut out[..m * GEO_OUT],
-                    );
+                || (vec![0f32; k * HIDDEN], vec![0f32; k * GEO_OUT]),
+                |(h, out), ((enc, dens), feat)| {
+                    let m = dens.len();
+                    self.geo[0].forward::<HIDDEN>(enc, &mut h[..m * HIDDEN], true);
+                    self.geo[1].forward::<GEO_OUT>(&h[..m * HIDDEN], &mut out[..m * GEO_OUT], false);
                     for i in 0..m {
-                        dens[i] = trunc_exp(out[i * GEO_OUT]);
+                        dens[i] = scale * trunc_exp(out[i * GEO_OUT]);
                         for (j, &d) in dims.iter().enumerate() {
                             feat[i * nd + j] = if d < F_POS_DIM {
                                 enc[i * F_POS_DIM + d]
@@ -671,7 +667,7 @@ impl NerfactoField {
         self.geo[1].forward::<GEO_OUT>(&h, &mut out, false);
         let mut d_out = vec![0f32; n * GEO_OUT];
         for i in 0..n {
-            d_out[i * GEO_OUT] = d_density[i] * trunc_exp_grad(out[i * GEO_OUT]);
+            d_out[i * GEO_OUT] = d_density[i] * self.density_scale() * trunc_exp_grad(out[i * GEO_OUT]);
         }
         let mut d_h = vec![0f32; n * HIDDEN];
         let mut scratch1 = self.geo[1].zero_grad();

@@ -11,9 +11,57 @@ pub const N_FEATURES_PER_LEVEL: usize = 2;
 /// tiny-cuda-nn's spatial-hash primes (x, y, z).
 const PRIMES: [u32; 3] = [1, 2_654_435_761, 805_459_861];
 
-/// Points per parallel work item in the forward pass: enough to amortise rayon overhead,
-/// small enough that the chunk's output stays in L1/L2 while all 16 levels are visited.
+/// Points per work item of the level-major → point-major transpose.
 const FWD_CHUNK: usize = 256;
+/// Points per (level, block) work item of the forward sweep.
+const LEVEL_BLOCK: usize = 16_384;
+/// Points whose corner addresses are computed (and prefetched) before any is gathered.
+const PREFETCH_BLOCK: usize = 32;
+
+/// Hints the cache to fetch `base[offset]`; a pure performance hint with no effect on results.
+#[inline(always)]
+fn prefetch(base: *const f32, offset: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        // wrapping_add: the address is only a hint and is never dereferenced here.
+        let p = base.wrapping_add(offset) as *const i8;
+        // SAFETY: prefetch never faults, whatever the address.
+        unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (base, offset);
+    }
+}
+
+/// Encodes `pts` at one level into `out[2p + f]`, in blocks: corner addresses first (with
+/// prefetches), then the gathers, so many cache misses are in flight at once.
+#[inline]
+fn encode_level_block(lv: &LevelInfo, tab: &[f32], pts: &[[f32; 3]], out: &mut [f32]) {
+    let mut idx = [[0u32; 8]; PREFETCH_BLOCK];
+    let mut wts = [[0f32; 8]; PREFETCH_BLOCK];
+    for (pb, ob) in pts.chunks(PREFETCH_BLOCK).zip(out.chunks_mut(2 * PREFETCH_BLOCK)) {
+        for (i, p) in pb.iter().enumerate() {
+            (idx[i], wts[i]) = HashGrid::corners(lv, *p);
+            // Corners c and c^1 differ only in x and usually share a cache line.
+            prefetch(tab.as_ptr(), idx[i][0] as usize * 2);
+            prefetch(tab.as_ptr(), idx[i][2] as usize * 2);
+            prefetch(tab.as_ptr(), idx[i][4] as usize * 2);
+            prefetch(tab.as_ptr(), idx[i][6] as usize * 2);
+        }
+        for (i, o) in ob.chunks_exact_mut(2).enumerate() {
+            let mut f0 = 0.0f32;
+            let mut f1 = 0.0f32;
+            for c in 0..8 {
+                let e = idx[i][c] as usize * 2;
+                f0 = wts[i][c].mul_add(tab[e], f0);
+                f1 = wts[i][c].mul_add(tab[e + 1], f1);
+            }
+            o[0] = f0;
+            o[1] = f1;
+        }
+    }
+}
 
 /// Geometry of one grid level.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -148,30 +196,52 @@ impl HashGrid {
     }
 
     /// Encodes points in `[0,1]³` into `out` (`points.len() × 32`, point-major).
+    ///
+    /// Each level is swept over *all* points before the next (levels in parallel): a level's
+    /// table (≤ 4 MB at T = 2^19) then stays in L3 during its sweep, whereas visiting all 16
+    /// levels per small chunk of points cycles 64 MB through the cache and misses to DRAM.
     pub fn encode(&self, points: &[[f32; 3]], out: &mut [f32]) {
         debug_assert_eq!(out.len(), points.len() * F_POS_DIM);
+        let n = points.len();
+        let mut lvl = vec![0f32; n * F_POS_DIM];
+        self.encode_level_major(points, &mut lvl);
         out.par_chunks_mut(FWD_CHUNK * F_POS_DIM)
-            .zip(points.par_chunks(FWD_CHUNK))
-            .for_each(|(o, pts)| self.encode_chunk(pts, o));
+            .enumerate()
+            .for_each(|(ci, o)| {
+                let p0 = ci * FWD_CHUNK;
+                for (i, row) in o.chunks_exact_mut(F_POS_DIM).enumerate() {
+                    let p = p0 + i;
+                    for l in 0..N_LEVELS {
+                        row[2 * l] = lvl[l * 2 * n + 2 * p];
+                        row[2 * l + 1] = lvl[l * 2 * n + 2 * p + 1];
+                    }
+                }
+            });
     }
 
-    /// Serial encoding of one chunk; levels outermost so one level's table region stays hot.
-    pub(crate) fn encode_chunk(&self, pts: &[[f32; 3]], out: &mut [f32]) {
-        for (l, lv) in self.levels.iter().enumerate() {
-            let tab = &self.table[lv.offset * 2..(lv.offset + lv.size) * 2];
-            for (p, orow) in pts.iter().zip(out.chunks_exact_mut(F_POS_DIM)) {
-                let (idx, w) = Self::corners(lv, *p);
-                let mut f0 = 0.0f32;
-                let mut f1 = 0.0f32;
-                for c in 0..8 {
-                    let e = idx[c] as usize * 2;
-                    f0 = w[c].mul_add(tab[e], f0);
-                    f1 = w[c].mul_add(tab[e + 1], f1);
-                }
-                orow[2 * l] = f0;
-                orow[2 * l + 1] = f1;
+    /// Level-major encoding: `out[l * 2n + 2p + f]`.
+    pub fn encode_level_major(&self, points: &[[f32; 3]], out: &mut [f32]) {
+        let n = points.len();
+        debug_assert_eq!(out.len(), n * F_POS_DIM);
+        if n == 0 {
+            return;
+        }
+        // Work items are (level, point block) with levels outermost, so the two threads sweep
+        // neighbouring levels at the same time.
+        let block = LEVEL_BLOCK.min(n).max(1);
+        let blocks_per_level = n.div_ceil(block);
+        let mut items: Vec<(usize, usize, &mut [f32])> = Vec::with_capacity(N_LEVELS * blocks_per_level);
+        for (l, lo) in out.chunks_mut(2 * n).enumerate() {
+            for (b, o) in lo.chunks_mut(2 * block).enumerate() {
+                items.push((l, b * block, o));
             }
         }
+        items.into_par_iter().for_each(|(l, p0, o)| {
+            let lv = &self.levels[l];
+            let tab = &self.table[lv.offset * 2..(lv.offset + lv.size) * 2];
+            let pts = &points[p0..p0 + o.len() / 2];
+            encode_level_block(lv, tab, pts, o);
+        });
     }
 
     /// Accumulates `∂L/∂table` into `grad` (same layout as `table`) given `∂L/∂out`
@@ -203,15 +273,30 @@ impl HashGrid {
         // Fine levels miss the cache most; schedule them first for better balance.
         slices.reverse();
         slices.into_par_iter().for_each(|(lv, g, d)| {
-            for (p, dp) in points.iter().zip(d.chunks_exact(2)) {
-                if dp[0] == 0.0 && dp[1] == 0.0 {
-                    continue;
+            let mut idx = [[0u32; 8]; PREFETCH_BLOCK];
+            let mut wts = [[0f32; 8]; PREFETCH_BLOCK];
+            for (pb, db) in points
+                .chunks(PREFETCH_BLOCK)
+                .zip(d.chunks(2 * PREFETCH_BLOCK))
+            {
+                // Phase 1: all corner addresses of the block, prefetched, so the scattered
+                // read-modify-writes of phase 2 overlap their cache misses.
+                for (i, p) in pb.iter().enumerate() {
+                    (idx[i], wts[i]) = Self::corners(lv, *p);
+                    prefetch(g.as_ptr(), idx[i][0] as usize * 2);
+                    prefetch(g.as_ptr(), idx[i][2] as usize * 2);
+                    prefetch(g.as_ptr(), idx[i][4] as usize * 2);
+                    prefetch(g.as_ptr(), idx[i][6] as usize * 2);
                 }
-                let (idx, w) = Self::corners(lv, *p);
-                for c in 0..8 {
-                    let e = idx[c] as usize * 2;
-                    g[e] = w[c].mul_add(dp[0], g[e]);
-                    g[e + 1] = w[c].mul_add(dp[1], g[e + 1]);
+                for (i, dp) in db.chunks_exact(2).enumerate() {
+                    if dp[0] == 0.0 && dp[1] == 0.0 {
+                        continue;
+                    }
+                    for c in 0..8 {
+                        let e = idx[i][c] as usize * 2;
+                        g[e] = wts[i][c].mul_add(dp[0], g[e]);
+                        g[e + 1] = wts[i][c].mul_add(dp[1], g[e + 1]);
+                    }
                 }
             }
         });

@@ -117,48 +117,141 @@ impl Linear {
         }
     }
 
+    /// Transposed weights (`n_out × n_in`), the layout the input-gradient kernel wants.
+    pub fn transposed(&self) -> Vec<f32> {
+        let (ni, no) = (self.n_in, self.n_out);
+        let mut t = vec![0f32; ni * no];
+        for i in 0..ni {
+            for o in 0..no {
+                t[o * ni + i] = self.w[i * no + o];
+            }
+        }
+        t
+    }
+
     /// Backward for a batch: accumulates `∂L/∂W`, `∂L/∂b` into `grad` and, if `dx` is given,
     /// writes `∂L/∂x` (`n × n_in`). `dy` must already include the activation's derivative.
     pub fn backward(&self, x: &[f32], dy: &[f32], dx: Option<&mut [f32]>, grad: &mut LinearGrad) {
+        let wt = if dx.is_some() { self.transposed() } else { Vec::new() };
+        self.backward_with(x, dy, dx, &wt, grad);
+    }
+
+    /// [`Self::backward`] with the transposed weights supplied (computed once per pass by
+    /// the caller instead of once per chunk).
+    pub fn backward_with(
+        &self,
+        x: &[f32],
+        dy: &[f32],
+        dx: Option<&mut [f32]>,
+        wt: &[f32],
+        grad: &mut LinearGrad,
+    ) {
+        match self.n_out {
+            64 => self.weight_grad::<64>(x, dy, grad),
+            16 => self.weight_grad::<16>(x, dy, grad),
+            _ => self.weight_grad_generic(x, dy, grad),
+        }
+        if let Some(dx) = dx {
+            input_grad(self.n_in, self.n_out, wt, dy, dx);
+        }
+    }
+
+    /// `∂L/∂W += Xᵀ·dY` with two rows of `∂L/∂W` held in registers across the whole batch,
+    /// so the inner loop has no stores.
+    fn weight_grad<const O: usize>(&self, x: &[f32], dy: &[f32], grad: &mut LinearGrad) {
+        let ni = self.n_in;
+        let n = dy.len() / O;
+        let mut gb = [0f32; O];
+        for dyr in dy.chunks_exact(O) {
+            for o in 0..O {
+                gb[o] += dyr[o];
+            }
+        }
+        for (g, v) in grad.b.iter_mut().zip(gb) {
+            *g += v;
+        }
+        let mut i = 0;
+        while i + 1 < ni {
+            let mut a = [0f32; O];
+            let mut b = [0f32; O];
+            for p in 0..n {
+                let xa = x[p * ni + i];
+                let xb = x[p * ni + i + 1];
+                let d: &[f32; O] = dy[p * O..(p + 1) * O].try_into().expect("row");
+                for o in 0..O {
+                    a[o] = xa.mul_add(d[o], a[o]);
+                    b[o] = xb.mul_add(d[o], b[o]);
+                }
+            }
+            for o in 0..O {
+                grad.w[i * O + o] += a[o];
+                grad.w[(i + 1) * O + o] += b[o];
+            }
+            i += 2;
+        }
+        if i < ni {
+            let mut a = [0f32; O];
+            for p in 0..n {
+                let xa = x[p * ni + i];
+                for o in 0..O {
+                    a[o] = xa.mul_add(dy[p * O + o], a[o]);
+                }
+            }
+            for o in 0..O {
+                grad.w[i * O + o] += a[o];
+            }
+        }
+    }
+
+    fn weight_grad_generic(&self, x: &[f32], dy: &[f32], grad: &mut LinearGrad) {
         let (ni, no) = (self.n_in, self.n_out);
         for (xr, dyr) in x.chunks_exact(ni).zip(dy.chunks_exact(no)) {
             for (gb, d) in grad.b.iter_mut().zip(dyr) {
                 *gb += d;
             }
             for (gw, &xi) in grad.w.chunks_exact_mut(no).zip(xr) {
-                if xi == 0.0 {
-                    continue;
-                }
                 for (g, d) in gw.iter_mut().zip(dyr) {
                     *g = xi.mul_add(*d, *g);
-                }
-            }
-        }
-        if let Some(dx) = dx {
-            for (dxr, dyr) in dx.chunks_exact_mut(ni).zip(dy.chunks_exact(no)) {
-                for (d, wr) in dxr.iter_mut().zip(self.w.chunks_exact(no)) {
-                    *d = dot8(wr, dyr);
                 }
             }
         }
     }
 }
 
-/// Dot product with 8 independent partial sums so the compiler can vectorise it without
-/// reassociation licence.
-#[inline(always)]
-fn dot8(a: &[f32], b: &[f32]) -> f32 {
-    let mut acc = [0f32; 8];
-    let mut ac = a.chunks_exact(8);
-    let mut bc = b.chunks_exact(8);
-    for (x, y) in (&mut ac).zip(&mut bc) {
-        for l in 0..8 {
-            acc[l] = x[l].mul_add(y[l], acc[l]);
+/// `dX = dY·Wᵀ` using the transposed weights `wt` (`n_out × n_in`): 8 outputs at a time in
+/// one vector accumulator, one broadcast-FMA per output unit, no horizontal reductions.
+fn input_grad(ni: usize, no: usize, wt: &[f32], dy: &[f32], dx: &mut [f32]) {
+    for (dxr, dyr) in dx.chunks_exact_mut(ni).zip(dy.chunks_exact(no)) {
+        let mut i0 = 0;
+        while i0 + 16 <= ni {
+            let mut a = [0f32; 16];
+            for (o, &d) in dyr.iter().enumerate() {
+                let w: &[f32; 16] = wt[o * ni + i0..o * ni + i0 + 16].try_into().expect("w");
+                for l in 0..16 {
+                    a[l] = d.mul_add(w[l], a[l]);
+                }
+            }
+            dxr[i0..i0 + 16].copy_from_slice(&a);
+            i0 += 16;
+        }
+        while i0 + 8 <= ni {
+            let mut a = [0f32; 8];
+            for (o, &d) in dyr.iter().enumerate() {
+                let w: &[f32; 8] = wt[o * ni + i0..o * ni + i0 + 8].try_into().expect("w");
+                for l in 0..8 {
+                    a[l] = d.mul_add(w[l], a[l]);
+                }
+            }
+            dxr[i0..i0 + 8].copy_from_slice(&a);
+            i0 += 8;
+        }
+        for i in i0..ni {
+            let mut a = 0f32;
+            for (o, &d) in dyr.iter().enumerate() {
+                a = d.mul_add(wt[o * ni + i], a);
+            }
+            dxr[i] = a;
         }
     }
-    let mut s = 0.0;
-    for (x, y) in ac.remainder().iter().zip(bc.remainder()) {
-        s = x.mul_add(*y, s);
-    }
-    s + ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
 }
+

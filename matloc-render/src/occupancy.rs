@@ -8,23 +8,30 @@ use crate::error::RenderError;
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct OccupancyConfig {
-    /// Cells per axis over the contracted cube `[0,1]³`.
+    /// Cells per axis over the contracted cube `[0,1]³` (the scene box covers the middle half
+    /// of each axis).
     pub resolution: usize,
-    /// Multiplier applied to every cell's density estimate at each update (instant-ngp: 0.95).
+    /// Multiplier applied to every cell's estimate at each update before taking the max with
+    /// the new value (instant-ngp: 0.95 with partial updates over 35k steps; 0.5 with full
+    /// updates lets a cleared cell drop out after a few updates in short CPU runs).
     pub decay: f32,
-    /// A cell is occupied if its estimate exceeds `min(density_threshold, mean estimate)`.
+    /// Occupancy threshold in *normalised* density units (multiples of
+    /// `SceneBox::density_scale`, i.e. of the initial density): a cell is occupied if its
+    /// estimate exceeds `min(density_threshold · scale, mean estimate)`. Scale-free, so the
+    /// same value suits a 10 m and a 1 km scene.
     pub density_threshold: f32,
-    /// Fraction of cells re-evaluated per update (after the first, full update).
+    /// Fraction of cells re-evaluated per update after the first (full) one; cells are drawn
+    /// at random. 1.0 = every cell every update.
     pub update_fraction: f32,
 }
 
 impl Default for OccupancyConfig {
     fn default() -> Self {
         Self {
-            resolution: 128,
-            decay: 0.95,
+            resolution: 64,
+            decay: 0.5,
             density_threshold: 0.01,
-            update_fraction: 0.125,
+            update_fraction: 1.0,
         }
     }
 }
@@ -122,7 +129,7 @@ impl OccupancyGrid {
     ) -> Result<(), RenderError> {
         let n = self.num_cells();
         let r = self.config.resolution;
-        let cells: Vec<usize> = if self.updates == 0 {
+        let cells: Vec<usize> = if self.updates == 0 || self.config.update_fraction >= 1.0 {
             (0..n).collect()
         } else {
             let m = ((n as f32 * self.config.update_fraction) as usize).clamp(1, n);
@@ -156,7 +163,8 @@ impl OccupancyGrid {
 
     fn rebuild_bits(&mut self) {
         let mean = self.density.iter().map(|&d| d as f64).sum::<f64>() / self.num_cells() as f64;
-        let thr = (self.config.density_threshold as f64).min(mean) as f32;
+        let thr = ((self.config.density_threshold * self.scene_box.density_scale()) as f64)
+            .min(mean) as f32;
         self.bits.fill(0);
         for (i, &d) in self.density.iter().enumerate() {
             if d > thr {
