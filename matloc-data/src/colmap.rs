@@ -769,14 +769,10 @@ pub fn parse_images_text(
             let (pline, ptext) = &lines[i];
             i += 1;
             let mut pt = Tokens::new(path, *pline, ptext);
-            loop {
-                let Some(x) = pt.it.next() else { break };
-                let parse =
-                    |s: &str, field: &'static str, pt: &Tokens| -> Result<f64, ColmapError> {
-                        s.parse()
-                            .map_err(|_| pt.err(field, format!("cannot parse `{s}`")))
-                    };
-                let x = parse(x, "POINTS2D x", &pt)?;
+            while let Some(x) = pt.it.next() {
+                let x: f64 = x
+                    .parse()
+                    .map_err(|_| pt.err("POINTS2D x", format!("cannot parse `{x}`")))?;
                 let y: f64 = pt.parse("POINTS2D y")?;
                 let id3: i64 = pt.parse("POINTS2D POINT3D_ID")?;
                 let point3d_id = match id3 {

@@ -194,7 +194,7 @@ pub fn summarize(dataset: &Dataset) -> DatasetSummary {
         match cameras.iter_mut().find(|s| {
             (s.width, s.height, s.fx, s.fy, s.cx, s.cy)
                 == (c.width, c.height, c.fx, c.fy, c.cx, c.cy)
-                && s.distorted == !c.is_pinhole()
+                && s.distorted != c.is_pinhole()
         }) {
             Some(s) => s.count += 1,
             None => cameras.push(CameraSummary {
@@ -218,8 +218,8 @@ pub fn summarize(dataset: &Dataset) -> DatasetSummary {
             count,
         })
         .collect();
-    resolutions.sort_by(|a, b| b.count.cmp(&a.count));
-    cameras.sort_by(|a, b| b.count.cmp(&a.count));
+    resolutions.sort_by_key(|r| std::cmp::Reverse(r.count));
+    cameras.sort_by_key(|c| std::cmp::Reverse(c.count));
 
     let centers: Vec<Point3<f64>> = frames.iter().map(|f| f.center()).collect();
     let center_bounds = (!centers.is_empty()).then(|| {
