@@ -8,7 +8,7 @@ use matloc_data::nerfstudio::read_nerfstudio;
 use matloc_data::synth::{Progress, SynthConfig, World, synthesize};
 
 #[test]
-fn written_dataset_reads_back_with_identical_poses_and_depth() {
+fn synth_dataset_reads_back_with_identical_poses_and_depth() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = SynthConfig::preset("tiny").unwrap().with_seed(3);
     // Fewer, smaller frames keep this CI-sized; the layout logic is the same.
@@ -80,7 +80,7 @@ fn written_dataset_reads_back_with_identical_poses_and_depth() {
 }
 
 #[test]
-fn unknown_preset_names_the_valid_ones() {
+fn synth_unknown_preset_names_the_valid_ones() {
     let err = SynthConfig::preset("mill19").unwrap_err().to_string();
     assert!(
         err.contains("mill19") && err.contains("tiny, small, rubble, building"),

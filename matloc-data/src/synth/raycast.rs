@@ -2,7 +2,7 @@
 
 use nalgebra::{Point3, Vector3};
 
-use super::world::{Class, Material, Terrain, World};
+use super::world::{BLOCK, Class, Material, Terrain, World};
 
 /// Half-space `n · p <= d` with unit `n`.
 #[derive(Clone, Copy, Debug)]
@@ -297,7 +297,7 @@ impl Terrain {
                 }
                 hi
             };
-            if let Some(h) = self.dda(o, d, tin, tout) {
+            if let Some(h) = self.block_dda(o, d, tin, tout) {
                 return Some(h);
             }
         }
@@ -313,6 +313,80 @@ impl Terrain {
             }
         }
         None
+    }
+
+    /// Walks the blocks of the min/max hierarchy and runs the cell DDA only where the ray's
+    /// height range over a block overlaps the block's terrain heights.
+    fn block_dda(
+        &self,
+        o: &Vector3<f64>,
+        d: &Vector3<f64>,
+        tin: f64,
+        tout: f64,
+    ) -> Option<(f64, Vector3<f64>)> {
+        let c = self.cell * BLOCK as f64;
+        let (nbx, nby) = (self.nbx as i64, self.nby as i64);
+        let p = o + d * tin;
+        let mut i = (((p.x - self.x0) / c).floor() as i64).clamp(0, nbx - 1);
+        let mut j = (((p.y - self.y0) / c).floor() as i64).clamp(0, nby - 1);
+        let step_i: i64 = if d.x >= 0.0 { 1 } else { -1 };
+        let step_j: i64 = if d.y >= 0.0 { 1 } else { -1 };
+        let dtx = if d.x.abs() > 1e-15 {
+            c / d.x.abs()
+        } else {
+            f64::INFINITY
+        };
+        let dty = if d.y.abs() > 1e-15 {
+            c / d.y.abs()
+        } else {
+            f64::INFINITY
+        };
+        let bound = |k: i64, step: i64| (k + i64::from(step > 0)) as f64 * c;
+        let mut tmx = if d.x.abs() > 1e-15 {
+            (self.x0 + bound(i, step_i) - o.x) / d.x
+        } else {
+            f64::INFINITY
+        };
+        let mut tmy = if d.y.abs() > 1e-15 {
+            (self.y0 + bound(j, step_j) - o.y) / d.y
+        } else {
+            f64::INFINITY
+        };
+        let mut t_enter = tin;
+        let pad = 1e-6 * (1.0 + tout);
+        loop {
+            let t_exit = tmx.min(tmy).min(tout);
+            let (bmin, bmax) = self.blocks[j as usize * self.nbx + i as usize];
+            let (za, zb) = (o.z + d.z * t_enter, o.z + d.z * t_exit);
+            if za.min(zb) <= bmax + 1e-9 && za.max(zb) >= bmin - 1e-9 {
+                // Narrow to where the ray is inside the block's height range.
+                let (mut ta, mut tb) = (t_enter, t_exit);
+                if d.z.abs() > 1e-15 {
+                    let t_hi = (bmax - o.z) / d.z;
+                    let t_lo = (bmin - o.z) / d.z;
+                    ta = ta.max(t_hi.min(t_lo));
+                    tb = tb.min(t_hi.max(t_lo));
+                }
+                if let Some(h) = self.dda(o, d, (ta - pad).max(tin), (tb + pad).min(tout)) {
+                    return Some(h);
+                }
+            }
+            if t_exit >= tout {
+                return None;
+            }
+            if tmx < tmy {
+                i += step_i;
+                t_enter = tmx;
+                tmx += dtx;
+            } else {
+                j += step_j;
+                t_enter = tmy;
+                tmy += dty;
+            }
+            if i < 0 || j < 0 || i >= nbx || j >= nby {
+                return None;
+            }
+        }
     }
 
     fn dda(

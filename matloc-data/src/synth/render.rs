@@ -27,7 +27,7 @@ pub struct RenderOptions {
 impl Default for RenderOptions {
     fn default() -> Self {
         RenderOptions {
-            edge_samples: 3,
+            edge_samples: 2,
             shadows: true,
             sun_strength: 4.0,
             exposure: 1.0,

@@ -562,3 +562,108 @@ fn preview() {
         }
     }
 }
+
+/// Timing breakdown of the renderer (`cargo test -- --ignored perf_breakdown --nocapture`).
+#[test]
+#[ignore]
+fn perf_breakdown() {
+    for name in ["small", "rubble", "building"] {
+        let cfg = SynthConfig::preset(name).unwrap();
+        let (world, plan) = generate(&cfg).unwrap();
+        let views: Vec<_> = plan
+            .frames
+            .iter()
+            .step_by(plan.frames.len() / 16)
+            .take(16)
+            .collect();
+        for (label, opts) in [
+            ("full", cfg.render.clone()),
+            (
+                "aa2",
+                RenderOptions {
+                    edge_samples: 2,
+                    ..cfg.render.clone()
+                },
+            ),
+            (
+                "no-aa",
+                RenderOptions {
+                    edge_samples: 1,
+                    ..cfg.render.clone()
+                },
+            ),
+            (
+                "no-aa-no-shadow",
+                RenderOptions {
+                    edge_samples: 1,
+                    shadows: false,
+                    ..cfg.render.clone()
+                },
+            ),
+        ] {
+            let t = std::time::Instant::now();
+            for f in &views {
+                std::hint::black_box(world.render(&f.camera, &f.cam_from_world, &opts));
+            }
+            let s = t.elapsed().as_secs_f64();
+            eprintln!("{name} {label}: {:.1} images/s", views.len() as f64 / s);
+        }
+    }
+}
+
+/// Cost split between ray tracing and shading (`--ignored perf_split --nocapture`).
+#[test]
+#[ignore]
+fn perf_split() {
+    let cfg = SynthConfig::preset("small").unwrap();
+    let (world, plan) = generate(&cfg).unwrap();
+    let f = &plan.frames[plan.frames.len() / 3];
+    let wfc = f.cam_from_world.inverse();
+    let o = wfc.translation.vector;
+    let dirs: Vec<Vector3<f64>> = (0..240)
+        .flat_map(|y| (0..320).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            wfc.rotation
+                * f.camera
+                    .unproject(Point2::new(x as f64 + 0.5, y as f64 + 0.5))
+                    .unwrap()
+        })
+        .collect();
+    let t = std::time::Instant::now();
+    let mut hits = Vec::new();
+    for d in &dirs {
+        hits.push(world.trace(&o, d));
+    }
+    let trace = t.elapsed();
+    let t = std::time::Instant::now();
+    let mut terr = 0.0;
+    for d in &dirs {
+        terr += world
+            .terrain
+            .intersect(&o, d, f64::INFINITY)
+            .map_or(0.0, |h| h.0);
+    }
+    let terrain = t.elapsed();
+    let t = std::time::Instant::now();
+    let mut acc = 0.0f32;
+    for (d, h) in dirs.iter().zip(&hits) {
+        if let Some(h) = h {
+            let p = o + d * h.t;
+            acc += world.albedo(&p, &h.normal, h.prim, (h.t / f.camera.fx) as f32)[0];
+        }
+    }
+    let albedo = t.elapsed();
+    let t = std::time::Instant::now();
+    let mut occ = 0;
+    for (d, h) in dirs.iter().zip(&hits) {
+        if let Some(h) = h {
+            let p = o + d * h.t + h.normal * 1e-3;
+            let t1 = ((world.top_z + 0.01 - p.z) / world.sun.z).max(0.0);
+            occ += usize::from(world.occluded(&p, &world.sun, 1e-6, t1));
+        }
+    }
+    let shadow = t.elapsed();
+    eprintln!(
+        "76800 rays single-threaded: trace {trace:?} (terrain {terrain:?}), albedo {albedo:?}, shadow {shadow:?} [{terr:.0} {acc:.0} {occ}]"
+    );
+}

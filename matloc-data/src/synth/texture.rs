@@ -373,27 +373,41 @@ impl World {
             let patch = fbm2(xf, yf, 1.0 / 7.0, 3, s ^ 0x11, fw);
             let clump = fbm2(xf, yf, 0.6, 3, s ^ 0x14, fw);
             let fine = fbm2(xf, yf, 2.5, 3, s ^ 0x12, fw);
-            let grass = mix(
-                srgb(62, 92, 36),
-                srgb(125, 140, 64),
-                smooth(-0.4, 0.4, patch),
-            );
-            let grass = vary(grass, 0.55, 1.2 * clump + 0.5 * fine);
-            // Shrubs and flower/weed spots: blob features at the 1 m scale.
-            let (shrub, sr) = spots(xf, yf, 3.0, 0.35, 0.3, 1.1, s ^ 0x15, fw);
-            let shrub_col = mix(srgb(40, 62, 25), srgb(95, 105, 40), sr);
-            let grass = mix(grass, shrub_col, shrub);
-            let (flower, fr) = spots(xf, yf, 1.3, 0.2, 0.15, 0.35, s ^ 0x16, fw);
-            let grass = mix(
-                grass,
-                mix(srgb(200, 190, 120), srgb(170, 150, 150), fr),
-                0.7 * flower,
-            );
-            let soil = vary(srgb(125, 100, 72), 0.4, 1.2 * clump + fine + 0.5 * patch);
-            let (stone, st) = spots(xf, yf, 1.5, 0.3, 0.12, 0.4, s ^ 0x17, fw);
-            let soil = mix(soil, scale(srgb(170, 160, 145), 0.8 + 0.4 * st), stone);
-            let mut c = mix(grass, soil, smooth(0.05, 0.35, region + 0.3 * patch));
+            // Only evaluate the materials that the blend actually shows.
+            let m = smooth(0.05, 0.35, region + 0.3 * patch);
+            let grass = if m < 1.0 {
+                let grass = mix(
+                    srgb(62, 92, 36),
+                    srgb(125, 140, 64),
+                    smooth(-0.4, 0.4, patch),
+                );
+                let grass = vary(grass, 0.55, 1.2 * clump + 0.5 * fine);
+                // Shrubs and flower/weed spots: blob features at the 1 m scale.
+                let (shrub, sr) = spots(xf, yf, 3.0, 0.35, 0.3, 1.1, s ^ 0x15, fw);
+                let shrub_col = mix(srgb(40, 62, 25), srgb(95, 105, 40), sr);
+                let grass = mix(grass, shrub_col, shrub);
+                let (flower, fr) = spots(xf, yf, 1.3, 0.2, 0.15, 0.35, s ^ 0x16, fw);
+                mix(
+                    grass,
+                    mix(srgb(200, 190, 120), srgb(170, 150, 150), fr),
+                    0.7 * flower,
+                )
+            } else {
+                [0.0; 3]
+            };
+            let soil = if m > 0.0 {
+                let soil = vary(srgb(125, 100, 72), 0.4, 1.2 * clump + fine + 0.5 * patch);
+                let (stone, st) = spots(xf, yf, 1.5, 0.3, 0.12, 0.4, s ^ 0x17, fw);
+                mix(soil, scale(srgb(170, 160, 145), 0.8 + 0.4 * st), stone)
+            } else {
+                [0.0; 3]
+            };
+            let mut c = mix(grass, soil, m);
             for f in &self.rubble {
+                let reach = 1.35 * f.radius + 6.0;
+                if (x - f.center[0]).abs() > reach || (y - f.center[1]).abs() > reach {
+                    continue;
+                }
                 let d = ((x - f.center[0]).powi(2) + (y - f.center[1]).powi(2)).sqrt() as f32;
                 let w = 1.0
                     - smooth(

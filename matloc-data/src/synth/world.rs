@@ -157,12 +157,40 @@ pub(crate) struct Terrain {
     pub hmax: f64,
     /// Height of the infinite plane outside the grid (the apron fades to it).
     pub base: f64,
+    /// Per block of `BLOCK × BLOCK` cells: (min, max) height, for skipping empty space.
+    pub blocks: Vec<(f64, f64)>,
+    pub nbx: usize,
+    pub nby: usize,
 }
+
+/// Terrain cells per block side in the min/max hierarchy.
+pub(crate) const BLOCK: usize = 8;
 
 impl Terrain {
     #[inline]
     pub fn h(&self, i: usize, j: usize) -> f64 {
         self.heights[j * (self.nx + 1) + i]
+    }
+
+    fn build_blocks(&mut self) {
+        self.nbx = self.nx.div_ceil(BLOCK);
+        self.nby = self.ny.div_ceil(BLOCK);
+        self.blocks = vec![(f64::INFINITY, f64::NEG_INFINITY); self.nbx * self.nby];
+        for j in 0..=self.ny {
+            for i in 0..=self.nx {
+                let h = self.h(i, j);
+                // A vertex on a block border belongs to both blocks.
+                for bj in [j.saturating_sub(1) / BLOCK, j / BLOCK] {
+                    for bi in [i.saturating_sub(1) / BLOCK, i / BLOCK] {
+                        if bi < self.nbx && bj < self.nby {
+                            let b = &mut self.blocks[bj * self.nbx + bi];
+                            b.0 = b.0.min(h);
+                            b.1 = b.1.max(h);
+                        }
+                    }
+                }
+            }
+        }
     }
 
     pub fn height_at(&self, x: f64, y: f64) -> f64 {
@@ -712,7 +740,7 @@ fn make_terrain(
     }
     let hmin = heights.iter().copied().fold(0.0, f64::min);
     let hmax = heights.iter().copied().fold(0.0, f64::max);
-    Terrain {
+    let mut t = Terrain {
         x0,
         y0: x0,
         cell,
@@ -722,7 +750,12 @@ fn make_terrain(
         hmin,
         hmax,
         base: 0.0,
-    }
+        blocks: Vec::new(),
+        nbx: 0,
+        nby: 0,
+    };
+    t.build_blocks();
+    t
 }
 
 fn make_roads(config: &WorldConfig, rng: &mut Rng, half: f64, outer: f64) -> Vec<Road> {
