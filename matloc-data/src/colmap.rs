@@ -133,7 +133,12 @@ pub struct ColmapCamera {
 impl ColmapCamera {
     /// The camera as a validated [`Camera`].
     pub fn to_camera(&self) -> Result<Camera, CameraError> {
-        let p = &self.params;
+        // A hand-built camera may lack parameters: missing ones read as NaN and fail
+        // validation with the parameter's name instead of panicking.
+        let mut p = [f64::NAN; 8];
+        for (dst, src) in p.iter_mut().zip(&self.params) {
+            *dst = *src;
+        }
         let (fx, fy, cx, cy, d) = match self.model {
             ColmapCameraModel::SimplePinhole => (p[0], p[0], p[1], p[2], Distortion::NONE),
             ColmapCameraModel::Pinhole => (p[0], p[1], p[2], p[3], Distortion::NONE),
@@ -600,7 +605,9 @@ impl ColmapModel {
                     reason: "image path is not valid UTF-8".into(),
                 })?
                 .to_string();
-            if name.is_empty() || name.contains(['\0', '\n', '\r']) || name.contains(' ') {
+            // Text models split on whitespace and rejoin with single spaces.
+            let survives_text = name.split_whitespace().collect::<Vec<_>>().join(" ") == name;
+            if name.is_empty() || name.contains('\0') || !survives_text {
                 return Err(ColmapError::Unrepresentable {
                     frame: i,
                     reason: format!("image name {name:?} cannot be stored in a COLMAP model"),
@@ -755,9 +762,12 @@ pub fn parse_images_text(
             *v = t.parse(f)?;
         }
         let camera_id: u32 = t.parse("CAMERA_ID")?;
-        // Names may contain spaces in principle; COLMAP itself reads one token, so do we.
-        let name = t.next_str("NAME")?.to_string();
-        t.end()?;
+        // The name is the rest of the line, so names containing single spaces survive.
+        let mut name = t.next_str("NAME")?.to_string();
+        for part in t.it.by_ref() {
+            name.push(' ');
+            name.push_str(part);
+        }
         let cam_from_world =
             cam_from_world_from_colmap(q, tv).map_err(|source| ColmapError::BadPose {
                 path: path.to_path_buf(),

@@ -368,7 +368,12 @@ fn parse_json_lenient(bytes: &[u8], path: &Path) -> Result<Value, NerfstudioErro
                 path: path.to_path_buf(),
                 line: first.line(),
                 column: first.column(),
-                message: first.to_string(),
+                message: {
+                    // serde_json appends the location, which the variant already carries.
+                    let full = first.to_string();
+                    let suffix = format!(" at line {} column {}", first.line(), first.column());
+                    full.strip_suffix(&suffix).unwrap_or(&full).to_string()
+                },
             })
         }
     }

@@ -401,3 +401,21 @@ fn dataset_to_colmap_and_back() {
         );
     }
 }
+
+#[test]
+fn names_with_spaces_and_short_params() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    fs::write(d.join("cameras.txt"), "1 PINHOLE 10 10 5 5 5 5\n").unwrap();
+    fs::write(d.join("images.txt"), "1 1 0 0 0 0 0 0 1 my photo 1.png\n\n").unwrap();
+    let model = read_colmap(d).unwrap();
+    assert_eq!(model.images[&1].name, "my photo 1.png");
+    let out = d.join("bin");
+    write_colmap(&model, &out, ColmapFormat::Binary).unwrap();
+    assert_eq!(read_colmap(&out).unwrap().images[&1].name, "my photo 1.png");
+
+    // A hand-built camera with too few parameters is an error, not a panic.
+    let mut cam = model.cameras[&1].clone();
+    cam.params.truncate(2);
+    assert!(cam.to_camera().is_err());
+}
