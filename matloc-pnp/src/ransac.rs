@@ -29,6 +29,29 @@ pub trait Estimator {
 
     /// Squared residual of one data point, in the units of the threshold (pixels²).
     fn squared_residual(&self, model: &Self::Model, index: usize) -> f64;
+
+    /// MSAC score `Σ min(e², τ²)` and inlier count of a model over all data, or `None` once the
+    /// partial score reaches `bound` (the model cannot beat the best one).
+    ///
+    /// The default loops over [`Estimator::squared_residual`]; estimators override it with a
+    /// vectorised loop because scoring dominates RANSAC's run time at high outlier ratios.
+    fn score(&self, model: &Self::Model, threshold_sq: f64, bound: f64) -> Option<(f64, usize)> {
+        let mut score = 0.0;
+        let mut inliers = 0;
+        for i in 0..self.num_data() {
+            let e = self.squared_residual(model, i);
+            if e < threshold_sq {
+                score += e;
+                inliers += 1;
+            } else {
+                score += threshold_sq;
+            }
+            if score >= bound {
+                return None;
+            }
+        }
+        Some((score, inliers))
+    }
 }
 
 /// Draws minimal samples (indices into the data, without repetition).
@@ -269,30 +292,6 @@ fn log_miss_probability(inlier_prefix: &[u32], pool: usize, m: usize) -> f64 {
     (1.0 - p_good).max(0.0).ln()
 }
 
-/// MSAC score and inlier count, or `None` as soon as the partial score exceeds `bound`.
-pub fn msac_score<E: Estimator>(
-    estimator: &E,
-    model: &E::Model,
-    threshold_sq: f64,
-    bound: f64,
-) -> Option<(f64, usize)> {
-    let mut score = 0.0;
-    let mut inliers = 0;
-    for i in 0..estimator.num_data() {
-        let e = estimator.squared_residual(model, i);
-        if e < threshold_sq {
-            score += e;
-            inliers += 1;
-        } else {
-            score += threshold_sq;
-        }
-        if score >= bound {
-            return None;
-        }
-    }
-    Some((score, inliers))
-}
-
 /// Runs LO-RANSAC with MSAC scoring.
 ///
 /// Termination is adaptive: sampling stops (after `min_iterations`, at most `max_iterations`)
@@ -351,7 +350,7 @@ pub fn ransac<E: Estimator, S: Sampler + ?Sized>(
         out.num_hypotheses += models.len();
         let mut improved = false;
         for model in &models {
-            if let Some((score, inliers)) = msac_score(estimator, model, threshold_sq, best_score) {
+            if let Some((score, inliers)) = estimator.score(model, threshold_sq, best_score) {
                 best_score = score;
                 best_inliers = inliers;
                 best = Some(model.clone());
@@ -376,7 +375,7 @@ pub fn ransac<E: Estimator, S: Sampler + ?Sized>(
                 let Some(refit) = estimator.fit_nonminimal(&candidates, Some(current)) else {
                     break;
                 };
-                match msac_score(estimator, &refit, threshold_sq, best_score) {
+                match estimator.score(&refit, threshold_sq, best_score) {
                     Some((score, inliers)) => {
                         best_score = score;
                         best_inliers = inliers;

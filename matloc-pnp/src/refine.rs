@@ -127,7 +127,7 @@ impl Default for RefineOptions {
             max_iterations: 50,
             loss: RobustLoss::default(),
             gradient_tolerance: 1e-10,
-            step_tolerance: 1e-12,
+            step_tolerance: 1e-10,
             initial_damping: 1e-4,
         }
     }
@@ -324,26 +324,29 @@ pub(crate) fn levenberg_marquardt(
         };
         let omega = Vector3::new(step[0], step[1], step[2]);
         let v = Vector3::new(step[3], step[4], step[5]);
+        if omega.norm() < options.step_tolerance
+            && v.norm() < options.step_tolerance * (1.0 + pose.translation.norm())
+        {
+            break;
+        }
         let rot = exp_so3(&omega);
         let candidate = PoseMatrix::new(rot * pose.rotation, rot * pose.translation + v);
-        let mut h_new = Matrix6::zeros();
-        let mut g_new = Vector6::zeros();
-        let new_cost = problem.evaluate(&candidate, loss, Some((&mut h_new, &mut g_new)));
+        // Cost first: rejected steps (common once converged) then skip the Jacobians.
+        let new_cost = problem.evaluate(&candidate, loss, None);
         if new_cost < cost {
             let relative_decrease = (cost - new_cost) / cost.max(1e-300);
             pose = candidate;
             cost = new_cost;
-            h = h_new;
-            g = g_new;
             damping = (damping * 0.1).max(1e-12);
-            let small_step = omega.norm() < options.step_tolerance
-                && v.norm() < options.step_tolerance * (1.0 + pose.translation.norm());
-            if small_step || relative_decrease < 1e-15 {
+            if relative_decrease < 1e-12 {
                 break;
             }
+            h = Matrix6::zeros();
+            g = Vector6::zeros();
+            problem.evaluate(&pose, loss, Some((&mut h, &mut g)));
         } else {
             damping *= 10.0;
-            if damping > 1e12 {
+            if damping > 1e8 {
                 break;
             }
         }

@@ -146,9 +146,9 @@ fn success_rate_distorted_cameras() {
 /// 90 % outliers is reported, not held to 99 % (inliers can be as few as 10).
 #[test]
 fn success_rate_ninety_percent_outliers_reported() {
-    let general = run_batch(400, 60, 0.9, false, false);
+    let general = run_batch(400, 30, 0.9, false, false);
     report("general, 90 % outliers", &general);
-    let planar = run_batch(401, 60, 0.9, true, false);
+    let planar = run_batch(401, 30, 0.9, true, false);
     report("planar, 90 % outliers", &planar);
     assert!(general.success >= general.oracle_success - 0.05);
     assert!(planar.success >= planar.oracle_success - 0.05);
