@@ -1,0 +1,75 @@
+//! `matloc`: the command-line front end of matloc-nerf. It only parses arguments, shows progress
+//! and prints reports; all work happens in the library crates.
+
+mod dataset_cmd;
+mod progress;
+mod synth_cmd;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "matloc",
+    version,
+    about = "Localize camera images against NeRF maps on the CPU"
+)]
+struct Cli {
+    /// Hide progress bars.
+    #[arg(long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Synthesise a dataset of the procedural aerial world (nerfstudio layout).
+    Synth {
+        /// Preset: tiny, small, rubble or building.
+        #[arg(long, default_value = "small")]
+        preset: String,
+        /// Output directory (created; an existing dataset there is replaced).
+        #[arg(long)]
+        out: PathBuf,
+        /// World and capture seed (default: the preset's).
+        #[arg(long)]
+        seed: Option<u64>,
+    },
+    /// Inspect datasets.
+    Dataset {
+        #[command(subcommand)]
+        command: DatasetCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum DatasetCommand {
+    /// Validate a transforms.json or COLMAP dataset and print a summary.
+    Info {
+        /// Dataset directory, transforms.json file, or COLMAP model directory.
+        path: PathBuf,
+        /// Print the summary as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Synth { preset, out, seed } => synth_cmd::run(&preset, &out, seed, cli.quiet),
+        Command::Dataset {
+            command: DatasetCommand::Info { path, json },
+        } => dataset_cmd::info(&path, json),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
