@@ -539,9 +539,7 @@ impl World {
         let mut best: Option<RawHit> = None;
         let mut stack = [0u32; 64];
         let mut sp = 0usize;
-        if nodes[0].aabb.hit(o, &inv, t0, best_t).is_none() {
-            return None;
-        }
+        nodes[0].aabb.hit(o, &inv, t0, best_t)?;
         stack[sp] = 0;
         sp += 1;
         while sp > 0 {

@@ -177,7 +177,7 @@ impl World {
                 }
                 e
             };
-            let seed = (self.noise_seed ^ 0xA5A5) as u32;
+            let seed = self.noise_seed ^ 0xA5A5;
             rgb.par_chunks_mut(w * 3)
                 .enumerate()
                 .for_each(|(row, rgb_row)| {

@@ -5,7 +5,11 @@
 //! finer than it. A NeRF cannot fit per-view aliasing noise, and a 1-sample-per-pixel texture
 //! lookup is what keeps the renderer at tens of images per second on two cores.
 
+use nalgebra::Vector3;
+
+use super::raycast::TERRAIN;
 use super::rng::{hash3, unit};
+use super::world::{Building, Class, RoofMat, SIDEWALK_M, WallKind, World};
 
 /// Linear RGB.
 pub(crate) type Rgb = [f32; 3];
@@ -20,16 +24,18 @@ fn lerp(a: f32, b: f32, t: f32) -> f32 {
     a + (b - a) * t
 }
 
-/// Unit-ish gradient directions for 2D noise (8 compass directions).
+const D: f32 = std::f32::consts::FRAC_1_SQRT_2;
+
+/// Unit gradient directions for 2D noise (8 compass directions).
 const G2: [(f32, f32); 8] = [
     (1.0, 0.0),
     (-1.0, 0.0),
     (0.0, 1.0),
     (0.0, -1.0),
-    (0.707_106_8, 0.707_106_8),
-    (-0.707_106_8, 0.707_106_8),
-    (0.707_106_8, -0.707_106_8),
-    (-0.707_106_8, -0.707_106_8),
+    (D, D),
+    (-D, D),
+    (D, -D),
+    (-D, -D),
 ];
 
 /// 2D gradient noise, roughly in `[-1, 1]`, zero mean.
@@ -245,57 +251,8 @@ pub(crate) fn vary(c: Rgb, amount: f32, n: f32) -> Rgb {
     scale(c, (1.0 + amount * n).max(0.05))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn noise_is_bounded_and_continuous() {
-        let mut max = 0.0f32;
-        for i in 0..2000 {
-            let x = i as f32 * 0.173 - 50.0;
-            let y = i as f32 * 0.311 + 3.0;
-            let n = noise2(x, y, 3);
-            let m = noise3(x, y, 0.5 * x, 9);
-            max = max.max(n.abs()).max(m.abs());
-            assert!((noise2(x + 1e-3, y, 3) - n).abs() < 0.02);
-        }
-        assert!(max < 1.6 && max > 0.3, "max {max}");
-        // Integer lattice points are zero for gradient noise.
-        assert_eq!(noise2(4.0, -7.0, 1), 0.0);
-    }
-
-    #[test]
-    fn prefilter_drops_contrast_with_footprint() {
-        let var = |fw: f32| {
-            let mut s = 0.0;
-            for i in 0..4000 {
-                let v = fbm2(i as f32 * 0.37, i as f32 * 0.11, 4.0, 5, 2, fw);
-                s += v * v;
-            }
-            s / 4000.0
-        };
-        assert!(var(0.0) > var(0.1));
-        assert!(var(0.1) > var(1.0));
-        assert_eq!(var(10.0), 0.0);
-    }
-
-    #[test]
-    fn pulse_integrates_box() {
-        assert!((pulse(0.5, 0.0, 1.0, 0.1) - 1.0).abs() < 1e-6);
-        assert_eq!(pulse(2.0, 0.0, 1.0, 0.1), 0.0);
-        assert!((pulse(1.0, 0.0, 1.0, 0.2) - 0.5).abs() < 1e-6);
-        assert!((periodic_pulse(0.0, 0.05, 0.95, 1.0, 0.2) - 0.5).abs() < 1e-6);
-    }
-}
-
 // ---------------------------------------------------------------------------------------------
 // Surface albedo of every scene part.
-
-use nalgebra::Vector3;
-
-use super::raycast::TERRAIN;
-use super::world::{Building, Class, RoofMat, SIDEWALK_M, WallKind, World};
 
 #[inline]
 fn smooth(e0: f32, e1: f32, x: f32) -> f32 {
@@ -662,5 +619,49 @@ impl World {
             }
             RoofMat::Gravel => vary(bd.roof_col, 0.3, fbm2(x, y, 4.0, 4, bd.seed, fw) + dirt),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn noise_is_bounded_and_continuous() {
+        let mut max = 0.0f32;
+        for i in 0..2000 {
+            let x = i as f32 * 0.173 - 50.0;
+            let y = i as f32 * 0.311 + 3.0;
+            let n = noise2(x, y, 3);
+            let m = noise3(x, y, 0.5 * x, 9);
+            max = max.max(n.abs()).max(m.abs());
+            assert!((noise2(x + 1e-3, y, 3) - n).abs() < 0.02);
+        }
+        assert!(max < 1.6 && max > 0.3, "max {max}");
+        // Integer lattice points are zero for gradient noise.
+        assert_eq!(noise2(4.0, -7.0, 1), 0.0);
+    }
+
+    #[test]
+    fn prefilter_drops_contrast_with_footprint() {
+        let var = |fw: f32| {
+            let mut s = 0.0;
+            for i in 0..4000 {
+                let v = fbm2(i as f32 * 0.37, i as f32 * 0.11, 4.0, 5, 2, fw);
+                s += v * v;
+            }
+            s / 4000.0
+        };
+        assert!(var(0.0) > var(0.1));
+        assert!(var(0.1) > var(1.0));
+        assert_eq!(var(10.0), 0.0);
+    }
+
+    #[test]
+    fn pulse_integrates_box() {
+        assert!((pulse(0.5, 0.0, 1.0, 0.1) - 1.0).abs() < 1e-6);
+        assert_eq!(pulse(2.0, 0.0, 1.0, 0.1), 0.0);
+        assert!((pulse(1.0, 0.0, 1.0, 0.2) - 0.5).abs() < 1e-6);
+        assert!((periodic_pulse(0.0, 0.05, 0.95, 1.0, 0.2) - 0.5).abs() < 1e-6);
     }
 }
