@@ -249,6 +249,21 @@ fn hand_packed_binary_matches_documented_layout() {
         Vector3::new(4.0, 5.0, 6.0)
     );
 
+    // Our writer produces exactly the hand-packed bytes.
+    let tmp = tempfile::tempdir().unwrap();
+    let model = ColmapModel {
+        cameras: cameras.clone(),
+        images: images.clone(),
+        points3d: Default::default(),
+    };
+    write_colmap(&model, tmp.path(), ColmapFormat::Binary).unwrap();
+    assert_eq!(fs::read(tmp.path().join("cameras.bin")).unwrap(), cams);
+    assert_eq!(fs::read(tmp.path().join("images.bin")).unwrap(), imgs);
+    assert_eq!(
+        fs::read(tmp.path().join("points3D.bin")).unwrap(),
+        0u64.to_le_bytes()
+    );
+
     // Truncation anywhere names the record and field.
     let err = parse_images_binary(&imgs[..imgs.len() - 3], Path::new("images.bin")).unwrap_err();
     match &err {

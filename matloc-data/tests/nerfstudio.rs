@@ -442,3 +442,76 @@ fn failed_write_leaves_no_file() {
     assert!(matches!(err, NerfstudioError::Io { .. }), "{err}");
     assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 2);
 }
+
+mod random_round_trip {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn frame_strategy() -> impl Strategy<Value = Frame> {
+        (
+            prop::array::uniform3(-1.0..1.0f64),
+            0.0..std::f64::consts::PI,
+            prop::array::uniform3(-1000.0..1000.0f64),
+            (16u32..4000, 16u32..3000, 0.3..3.0f64, 0.9..1.1f64),
+            prop::array::uniform5(-0.2..0.2f64),
+            any::<bool>(),
+            0usize..3,
+        )
+            .prop_filter_map(
+                "non-zero axis",
+                |(axis, angle, t, (w, h, ff, aspect), d, distorted, split)| {
+                    let axis = nalgebra::Unit::try_new(Vector3::from(axis), 1e-3)?;
+                    let f = w as f64 * ff;
+                    let distortion = if distorted {
+                        Distortion {
+                            k1: d[0],
+                            k2: d[1],
+                            p1: d[2] * 0.01,
+                            p2: d[3] * 0.01,
+                            k3: d[4],
+                        }
+                    } else {
+                        Distortion::NONE
+                    };
+                    let camera = Camera::opencv(
+                        w,
+                        h,
+                        f,
+                        f * aspect,
+                        w as f64 * 0.49,
+                        h as f64 * 0.51,
+                        distortion,
+                    )
+                    .ok()?;
+                    Some(Frame {
+                        image_path: PathBuf::from(format!("img/{w}_{h}.jpg")),
+                        depth_path: None,
+                        camera,
+                        cam_from_world: Isometry3::from_parts(
+                            Translation3::from(Vector3::from(t)),
+                            UnitQuaternion::from_axis_angle(&axis, angle),
+                        ),
+                        split: [Split::Train, Split::Val, Split::Test][split],
+                    })
+                },
+            )
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+        #[test]
+        fn write_then_read_is_identity(frames in prop::collection::vec(frame_strategy(), 1..6)) {
+            let dir = tempfile::tempdir().unwrap();
+            let ds = Dataset { root: dir.path().to_path_buf(), frames, metadata: SceneMetadata::default() };
+            write_nerfstudio(&ds, dir.path()).unwrap();
+            let back = read_nerfstudio(dir.path()).unwrap();
+            prop_assert_eq!(back.frames.len(), ds.frames.len());
+            for (a, b) in ds.frames.iter().zip(&back.frames) {
+                prop_assert!(close_pose(&a.cam_from_world, &b.cam_from_world, 1e-9));
+                prop_assert_eq!(a.camera, b.camera);
+                prop_assert_eq!(a.split, b.split);
+            }
+        }
+    }
+}
