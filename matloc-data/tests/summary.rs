@@ -162,3 +162,20 @@ fn validation_finds_missing_and_mismatched_files() {
     assert_eq!(again.len(), 3);
     assert_eq!(read_dataset(dir.path()).unwrap().frames.len(), 5);
 }
+
+#[test]
+fn read_dataset_propagates_format_errors() {
+    use matloc_data::DataError;
+    use matloc_data::nerfstudio::NerfstudioError;
+    let dir = tempfile::tempdir().unwrap();
+    fs::write(dir.path().join("transforms.json"), "{\"frames\": [}").unwrap();
+    let err = read_dataset(dir.path()).unwrap_err();
+    assert!(
+        matches!(
+            &err,
+            DataError::Nerfstudio(NerfstudioError::Json { line: 1, .. })
+        ),
+        "{err}"
+    );
+    assert!(err.to_string().contains("transforms.json"));
+}
