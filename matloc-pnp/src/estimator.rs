@@ -16,8 +16,6 @@ use crate::refine::{RefineOptions, ReprojectionProblem, RobustLoss, levenberg_ma
 /// local approximation that the final refinement (which goes through the distortion) replaces.
 #[derive(Clone, Debug)]
 pub struct AbsolutePoseEstimator<'a> {
-    /// Structure-of-arrays copy (x, y, z, u, v) for the vectorised scoring loop.
-    soa: [Vec<f64>; 5],
     normalized: &'a [Vector2<f64>],
     bearings: &'a [Vector3<f64>],
     points: &'a [Vector3<f64>],
@@ -48,15 +46,7 @@ impl<'a> AbsolutePoseEstimator<'a> {
             points.len(),
             "bearings and points differ in length"
         );
-        let soa = [
-            points.iter().map(|p| p.x).collect(),
-            points.iter().map(|p| p.y).collect(),
-            points.iter().map(|p| p.z).collect(),
-            normalized.iter().map(|m| m.x).collect(),
-            normalized.iter().map(|m| m.y).collect(),
-        ];
         Self {
-            soa,
             normalized,
             bearings,
             points,
@@ -134,60 +124,6 @@ impl Estimator for AbsolutePoseEstimator<'_> {
         };
         let (pose, _) = levenberg_marquardt(&self.problem(indices), start, &loss, &options);
         Some(pose)
-    }
-
-    fn score(&self, model: &PoseMatrix, threshold_sq: f64, bound: f64) -> Option<(f64, usize)> {
-        let r = &model.rotation;
-        let t = &model.translation;
-        let [xs, ys, zs, us, vs] = &self.soa;
-        let (fx, fy) = (self.fx, self.fy);
-        let mut score = 0.0;
-        let mut inliers = 0usize;
-        // Fixed-width lanes with no branches inside let the compiler use SIMD; the early exit
-        // is checked once per block.
-        const LANES: usize = 4;
-        const BLOCK: usize = 64;
-        let n = xs.len();
-        let mut start = 0;
-        while start < n {
-            let end = (start + BLOCK).min(n);
-            let mut acc = [0.0f64; LANES];
-            let mut cnt = [0usize; LANES];
-            let mut i = start;
-            while i + LANES <= end {
-                for k in 0..LANES {
-                    let j = i + k;
-                    let (px, py, pz) = (xs[j], ys[j], zs[j]);
-                    let x = r[(0, 0)] * px + r[(0, 1)] * py + r[(0, 2)] * pz + t[0];
-                    let y = r[(1, 0)] * px + r[(1, 1)] * py + r[(1, 2)] * pz + t[1];
-                    let z = r[(2, 0)] * px + r[(2, 1)] * py + r[(2, 2)] * pz + t[2];
-                    let iz = 1.0 / z;
-                    let dx = fx * (x * iz - us[j]);
-                    let dy = fy * (y * iz - vs[j]);
-                    let e = dx * dx + dy * dy;
-                    let inlier = (z > 0.0) & (e < threshold_sq);
-                    acc[k] += if inlier { e } else { threshold_sq };
-                    cnt[k] += inlier as usize;
-                }
-                i += LANES;
-            }
-            for j in i..end {
-                let e = self.squared_residual(model, j);
-                if e < threshold_sq {
-                    acc[0] += e;
-                    cnt[0] += 1;
-                } else {
-                    acc[0] += threshold_sq;
-                }
-            }
-            score += acc.iter().sum::<f64>();
-            inliers += cnt.iter().sum::<usize>();
-            if score >= bound {
-                return None;
-            }
-            start = end;
-        }
-        Some((score, inliers))
     }
 
     #[inline]

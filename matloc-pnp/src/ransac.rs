@@ -33,8 +33,8 @@ pub trait Estimator {
     /// MSAC score `Σ min(e², τ²)` and inlier count of a model over all data, or `None` once the
     /// partial score reaches `bound` (the model cannot beat the best one).
     ///
-    /// The default loops over [`Estimator::squared_residual`]; estimators override it with a
-    /// vectorised loop because scoring dominates RANSAC's run time at high outlier ratios.
+    /// The default loops over [`Estimator::squared_residual`]; scoring dominates RANSAC's run
+    /// time at high outlier ratios, so an estimator may override it with a faster loop.
     fn score(&self, model: &Self::Model, threshold_sq: f64, bound: f64) -> Option<(f64, usize)> {
         let mut score = 0.0;
         let mut inliers = 0;

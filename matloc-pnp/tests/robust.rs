@@ -382,3 +382,22 @@ fn epnp_solver_on_clean_noisy_planar_set() {
         assert!(t < 0.1 && r < 0.1, "t {t} r {r}");
     }
 }
+
+/// Options are plain data: a JSON file describes a run, and missing fields take defaults.
+#[test]
+fn options_round_trip_through_json() {
+    let mut options = PnpOptions::default();
+    options.ransac.max_error_px = 2.5;
+    options.ransac.sampler = SamplerKind::Prosac;
+    options.refine.loss = RobustLoss::Huber { scale_px: 1.5 };
+    let text = serde_json::to_string(&options).unwrap();
+    let back: PnpOptions = serde_json::from_str(&text).unwrap();
+    assert_eq!(back, options);
+    let partial: PnpOptions = serde_json::from_str(r#"{"ransac": {"max_error_px": 4.0}}"#).unwrap();
+    assert_eq!(partial.ransac.max_error_px, 4.0);
+    assert_eq!(
+        partial.ransac.confidence,
+        RansacOptions::default().confidence
+    );
+    assert!(partial.final_refinement);
+}
