@@ -364,7 +364,7 @@ impl Sprt {
         self.tested += tested as f64;
         self.consistent += consistent as f64;
         self.rejections += 1;
-        if self.rejections % 64 == 0 {
+        if self.rejections.is_multiple_of(64) {
             self.delta = (self.consistent / self.tested).clamp(1e-4, 0.5);
             self.update(self.epsilon);
         }
