@@ -123,11 +123,11 @@ impl Bvh {
             first: 0,
             count: 0,
         });
-        bvh.split(prims, 0, 0, prims.len());
+        bvh.split(prims, 0, 0, prims.len(), 0);
         bvh
     }
 
-    fn split(&mut self, prims: &[Prim], node: usize, lo: usize, hi: usize) {
+    fn split(&mut self, prims: &[Prim], node: usize, lo: usize, hi: usize, depth: usize) {
         let mut bounds = Aabb::empty();
         let mut cb = Aabb::empty();
         for &i in &self.order[lo..hi] {
@@ -142,6 +142,33 @@ impl Bvh {
             self.nodes[node].count = (hi - lo) as u32;
             return;
         }
+        let mid = match self.sah_split(prims, lo, hi, &bounds, &cb, depth) {
+            Some(mid) => mid,
+            None if hi - lo <= 2 * LEAF_SIZE => {
+                self.nodes[node].first = lo as u32;
+                self.nodes[node].count = (hi - lo) as u32;
+                return;
+            }
+            None => self.median_split(prims, lo, hi, &cb),
+        };
+        let left = self.nodes.len();
+        self.nodes.push(Node {
+            aabb: Aabb::empty(),
+            first: 0,
+            count: 0,
+        });
+        self.nodes.push(Node {
+            aabb: Aabb::empty(),
+            first: 0,
+            count: 0,
+        });
+        self.nodes[node].first = left as u32;
+        self.nodes[node].count = 0;
+        self.split(prims, left, lo, mid, depth + 1);
+        self.split(prims, left + 1, mid, hi, depth + 1);
+    }
+
+    fn median_split(&mut self, prims: &[Prim], lo: usize, hi: usize, cb: &Aabb) -> usize {
         let ext = cb.max - cb.min;
         let axis = if ext.x >= ext.y && ext.x >= ext.z {
             0
@@ -156,21 +183,96 @@ impl Bvh {
             let cb = prims[b as usize].aabb.center()[axis];
             ca.total_cmp(&cb)
         });
-        let left = self.nodes.len();
-        self.nodes.push(Node {
-            aabb: Aabb::empty(),
-            first: 0,
-            count: 0,
-        });
-        self.nodes.push(Node {
-            aabb: Aabb::empty(),
-            first: 0,
-            count: 0,
-        });
-        self.nodes[node].first = left as u32;
-        self.nodes[node].count = 0;
-        self.split(prims, left, lo, mid);
-        self.split(prims, left + 1, mid, hi);
+        mid
+    }
+
+    /// Binned surface-area-heuristic split: buildings, roof units, rocks and crowns differ in
+    /// size by orders of magnitude, which a median split handles poorly. `None` when a leaf is
+    /// cheaper (or the tree is already deep, so traversal stacks stay bounded).
+    fn sah_split(
+        &mut self,
+        prims: &[Prim],
+        lo: usize,
+        hi: usize,
+        bounds: &Aabb,
+        cb: &Aabb,
+        depth: usize,
+    ) -> Option<usize> {
+        const BINS: usize = 16;
+        if depth > 40 {
+            return Some(self.median_split(prims, lo, hi, cb));
+        }
+        let area = |a: &Aabb| {
+            let e = a.max - a.min;
+            if e.x < 0.0 {
+                0.0
+            } else {
+                e.x * e.y + e.y * e.z + e.z * e.x
+            }
+        };
+        let mut best = (f64::INFINITY, 0usize, 0usize);
+        for axis in 0..3 {
+            let (c0, c1) = (cb.min[axis], cb.max[axis]);
+            if c1 - c0 < 1e-9 {
+                continue;
+            }
+            let bin_of = |p: &Prim| {
+                let c = p.aabb.center()[axis];
+                (((c - c0) / (c1 - c0) * BINS as f64) as usize).min(BINS - 1)
+            };
+            let mut boxes = [Aabb::empty(); BINS];
+            let mut counts = [0usize; BINS];
+            for &i in &self.order[lo..hi] {
+                let p = &prims[i as usize];
+                let b = bin_of(p);
+                boxes[b].grow(&p.aabb);
+                counts[b] += 1;
+            }
+            let mut right_area = [0.0; BINS];
+            let mut acc = Aabb::empty();
+            for b in (1..BINS).rev() {
+                acc.grow(&boxes[b]);
+                right_area[b] = area(&acc);
+            }
+            let mut left = Aabb::empty();
+            let mut n_left = 0;
+            for b in 0..BINS - 1 {
+                left.grow(&boxes[b]);
+                n_left += counts[b];
+                let n_right = hi - lo - n_left;
+                if n_left == 0 || n_right == 0 {
+                    continue;
+                }
+                let cost = area(&left) * n_left as f64 + right_area[b + 1] * n_right as f64;
+                if cost < best.0 {
+                    best = (cost, axis, b);
+                }
+            }
+        }
+        // Leaf cost ≈ one intersection per primitive; traversal cost ≈ one box test.
+        let leaf_cost = area(bounds) * (hi - lo) as f64;
+        if !best.0.is_finite() || (hi - lo <= 2 * LEAF_SIZE && best.0 + area(bounds) >= leaf_cost) {
+            return None;
+        }
+        let (_, axis, split_bin) = best;
+        let (c0, c1) = (cb.min[axis], cb.max[axis]);
+        let slice = &mut self.order[lo..hi];
+        let mut i = 0;
+        let mut j = slice.len();
+        while i < j {
+            let c = prims[slice[i] as usize].aabb.center()[axis];
+            let b = (((c - c0) / (c1 - c0) * BINS as f64) as usize).min(BINS - 1);
+            if b <= split_bin {
+                i += 1;
+            } else {
+                j -= 1;
+                slice.swap(i, j);
+            }
+        }
+        if i == 0 || i == slice.len() {
+            return Some(self.median_split(prims, lo, hi, cb));
+        }
+        Some(lo + i)
     }
 }
 

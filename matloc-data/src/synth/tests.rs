@@ -667,3 +667,29 @@ fn perf_split() {
         "76800 rays single-threaded: trace {trace:?} (terrain {terrain:?}), albedo {albedo:?}, shadow {shadow:?} [{terr:.0} {acc:.0} {occ}]"
     );
 }
+
+/// Renders 48 views of a preset at 320×240 (`SYNTH_PRESET`, default `small`); run under
+/// `/usr/bin/time` to turn CPU seconds into an unloaded-machine throughput estimate.
+#[test]
+#[ignore]
+fn perf_throughput() {
+    let name = std::env::var("SYNTH_PRESET").unwrap_or_else(|_| "small".into());
+    let cfg = SynthConfig::preset(&name).unwrap();
+    let (world, plan) = generate(&cfg).unwrap();
+    let views: Vec<_> = plan
+        .frames
+        .iter()
+        .step_by(plan.frames.len() / 48)
+        .take(48)
+        .collect();
+    let t = std::time::Instant::now();
+    for f in &views {
+        std::hint::black_box(world.render(&f.camera, &f.cam_from_world, &cfg.render));
+    }
+    let s = t.elapsed().as_secs_f64();
+    eprintln!(
+        "{name}: {} images in {s:.2} s wall = {:.1} images/s",
+        views.len(),
+        views.len() as f64 / s
+    );
+}
