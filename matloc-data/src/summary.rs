@@ -317,7 +317,9 @@ fn viewing_spread(dirs: impl Iterator<Item = Vector3<f64>>) -> Option<ViewingSpr
 }
 
 fn fmt3(v: &[f64; 3]) -> String {
-    format!("({:.3}, {:.3}, {:.3})", v[0], v[1], v[2])
+    // `+ 0.0` turns -0.0 into 0.0 so a rounded zero never prints as "-0.000".
+    let [x, y, z] = v.map(|c| c + 0.0);
+    format!("({x:.3}, {y:.3}, {z:.3})")
 }
 
 impl fmt::Display for DatasetSummary {
