@@ -5,7 +5,8 @@
 Usage: python3 bench/pnp/compare.py <out-dir>   (reads cases.json and ours.json)
 
 Success: translation error <= 0.1 m and rotation error <= 0.1 deg (camera centres; geodesic
-angle of R_est R_gt^T). Timings are wall-clock per solve, one thread per solver.
+angle of R_est R_gt^T). Timings are wall-clock per solve, one thread per solver; ours and
+PoseLib take the best of 3 identical solves per case, OpenCV (far slower) one solve.
 """
 import json
 import os
@@ -45,12 +46,15 @@ def run_poselib(case, pixels, points, threshold, extra=None):
         "height": cam["height"],
         "params": [cam["fx"], cam["fy"], cam["cx"], cam["cy"]],
     }
-    start = time.perf_counter()
     ransac_opt = {"max_reproj_error": threshold}
     ransac_opt.update(extra or {})
-    pose, _info = poselib.estimate_absolute_pose(pixels, points, camera, ransac_opt, {})
-    seconds = time.perf_counter() - start
-    return seconds, np.asarray(pose.R), np.asarray(pose.t)
+    # Best of 3 identical solves (fixed seed), as the Rust side does: the machine is shared.
+    best = float("inf")
+    for _ in range(3):
+        start = time.perf_counter()
+        pose, _info = poselib.estimate_absolute_pose(pixels, points, camera, ransac_opt, {})
+        best = min(best, time.perf_counter() - start)
+    return best, np.asarray(pose.R), np.asarray(pose.t)
 
 
 def run_opencv(case, pixels, points, threshold, flag):

@@ -60,31 +60,38 @@ fn bench_minimal(c: &mut Criterion) {
 }
 
 fn bench_ransac(c: &mut Criterion) {
-    let options = PnpOptions {
-        ransac: RansacOptions {
-            max_error_px: 2.0,
-            ..RansacOptions::default()
-        },
-        ..PnpOptions::default()
-    };
-    let solver = LoRansacPnp::new(options);
-    for (n, ratio) in [(200usize, 0.5f64), (1000, 0.8)] {
-        let mut rng = ChaCha8Rng::seed_from_u64(n as u64);
-        let camera = random_camera(&mut rng, false);
-        let gt = random_pose(&mut rng);
-        let scene = make_scene(&mut rng, camera, gt, n, ratio, 1.0, false);
-        let input = PnpInput::new(&scene.camera, &scene.pixels, &scene.points_world);
-        let name = format!("lo_ransac_{n}_matches_{:.0}pct_outliers", ratio * 100.0);
-        let mut seed = 0;
-        c.bench_function(&name, |b| {
-            b.iter(|| {
-                seed += 1;
-                let mut rng = ChaCha8Rng::seed_from_u64(seed);
-                solver
-                    .solve(black_box(&input), &mut rng)
-                    .map(|r| r.stats.num_inliers)
-            })
-        });
+    for sprt in [true, false] {
+        let options = PnpOptions {
+            ransac: RansacOptions {
+                max_error_px: 2.0,
+                sprt,
+                ..RansacOptions::default()
+            },
+            ..PnpOptions::default()
+        };
+        let solver = LoRansacPnp::new(options);
+        for (n, ratio) in [(200usize, 0.5f64), (1000, 0.8)] {
+            let mut rng = ChaCha8Rng::seed_from_u64(n as u64);
+            let camera = random_camera(&mut rng, false);
+            let gt = random_pose(&mut rng);
+            let scene = make_scene(&mut rng, camera, gt, n, ratio, 1.0, false);
+            let input = PnpInput::new(&scene.camera, &scene.pixels, &scene.points_world);
+            let name = format!(
+                "lo_ransac_{n}_matches_{:.0}pct_outliers{}",
+                ratio * 100.0,
+                if sprt { "" } else { "_no_sprt" }
+            );
+            let mut seed = 0;
+            c.bench_function(&name, |b| {
+                b.iter(|| {
+                    seed += 1;
+                    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+                    solver
+                        .solve(black_box(&input), &mut rng)
+                        .map(|r| r.stats.num_inliers)
+                })
+            });
+        }
     }
 }
 
