@@ -98,7 +98,7 @@ pub(crate) fn building() -> SynthConfig {
             extent_m: 300.0,
             margin_m: 90.0,
             roads: 4,
-            buildings: 90,
+            buildings: 200,
             building_size_m: [10.0, 40.0],
             building_height_m: [8.0, 30.0],
             rubble_fields: 1,

@@ -761,16 +761,34 @@ fn make_terrain(
 fn make_roads(config: &WorldConfig, rng: &mut Rng, half: f64, outer: f64) -> Vec<Road> {
     let mut roads = Vec::new();
     let mut last_angle: Option<f64> = None;
+    let mut placed: Vec<(f64, f64)> = Vec::new();
     for k in 0..config.roads {
-        // Alternate roughly perpendicular directions so roads form a network, not parallels.
-        let angle = match last_angle {
-            Some(a) if k % 2 == 1 => a + std::f64::consts::FRAC_PI_2 + rng.range(-0.3, 0.3),
-            _ => rng.range(0.0, std::f64::consts::PI),
-        };
+        let mut angle = 0.0;
+        let mut off = 0.0;
+        // Retry so that near-parallel roads keep a block's width apart.
+        for _ in 0..20 {
+            // Alternate roughly perpendicular directions so roads form a network.
+            angle = match last_angle {
+                Some(a) if k % 2 == 1 => a + std::f64::consts::FRAC_PI_2 + rng.range(-0.3, 0.3),
+                _ => rng.range(0.0, std::f64::consts::PI),
+            };
+            off = rng.range(-0.55, 0.55) * half;
+            let clash = placed.iter().any(|&(a, o)| {
+                let da = (angle - a).rem_euclid(std::f64::consts::PI);
+                let parallel = da.min(std::f64::consts::PI - da) < 0.4;
+                // Same or opposite direction: compare offsets along the shared normal.
+                let same_dir = (angle - a).cos() > 0.0;
+                let o2 = if same_dir { o } else { -o };
+                parallel && (off - o2).abs() < 0.45 * half
+            });
+            if !clash {
+                break;
+            }
+        }
+        placed.push((angle, off));
         last_angle = Some(angle);
         let dir = [angle.cos(), angle.sin()];
         let nrm = [-dir[1], dir[0]];
-        let off = rng.range(-0.55, 0.55) * half;
         let along = rng.range(-0.3, 0.3) * half;
         let c = [nrm[0] * off + dir[0] * along, nrm[1] * off + dir[1] * along];
         let len = 1.5 * outer;
