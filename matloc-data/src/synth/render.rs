@@ -122,9 +122,23 @@ impl World {
     ///
     /// Pixel centres are at `(col + 0.5, row + 0.5)`; depth is that centre ray's z-depth, so a
     /// depth pixel lifted with [`Camera::unproject`] lands exactly on the surface. Pixels whose
-    /// ray cannot be undistorted render as sky with depth 0.
+    /// ray cannot be undistorted render as sky with depth 0; an invalid camera or a non-finite
+    /// pose gives an all-sky image.
     pub fn render(&self, camera: &Camera, cam_from_world: &Pose, opts: &RenderOptions) -> Rendered {
         let (w, h) = (camera.width as usize, camera.height as usize);
+        let finite = cam_from_world
+            .to_homogeneous()
+            .iter()
+            .all(|v| v.is_finite())
+            && camera.validate().is_ok();
+        if w == 0 || h == 0 || !finite {
+            // Nothing sensible to trace: an all-sky image with no depth.
+            let sky = self.sky(&Vector3::z());
+            return Rendered {
+                rgb: Image::from_vec(w, h, 3, sky.repeat(w * h)).expect("buffer sized w*h*3"),
+                depth: Image::new(w, h, 1),
+            };
+        }
         let world_from_cam = cam_from_world.inverse();
         let o = world_from_cam.translation.vector;
         let rot = world_from_cam.rotation;

@@ -256,6 +256,40 @@ fn depth_matches_raycast_under_lens_distortion() {
 }
 
 #[test]
+fn degenerate_cameras_and_poses_do_not_panic() {
+    let (world, plan, cfg) = tiny();
+    let f = &plan.frames[0];
+    let mut cam = f.camera;
+    cam.width = 0;
+    let r = world.render(&cam, &f.cam_from_world, &cfg.render);
+    assert_eq!(r.rgb.data().len(), 0);
+    let mut cam = f.camera;
+    cam.fx = f64::NAN;
+    let r = world.render(&cam, &f.cam_from_world, &cfg.render);
+    assert!(r.depth.data().iter().all(|&z| z == 0.0));
+    let mut pose = f.cam_from_world;
+    pose.translation.vector.x = f64::INFINITY;
+    let r = world.render(&f.camera, &pose, &cfg.render);
+    assert!(r.depth.data().iter().all(|&z| z == 0.0));
+    // Strong distortion: pixels that cannot be undistorted become sky, the rest render.
+    let d = Distortion {
+        k1: -0.6,
+        k2: 0.0,
+        p1: 0.0,
+        p2: 0.0,
+        k3: 0.0,
+    };
+    let wide = Camera::opencv(64, 48, 20.0, 20.0, 32.0, 24.0, d).unwrap();
+    let r = world.render(&wide, &f.cam_from_world, &cfg.render);
+    assert!(r.rgb.data().iter().all(|v| v.is_finite()));
+    assert!(
+        world
+            .raycast(&Point3::new(f64::NAN, 0.0, 0.0), &Vector3::z())
+            .is_none()
+    );
+}
+
+#[test]
 fn raycast_and_height_agree_on_open_ground() {
     let (world, _, _) = tiny();
     let mut checked = 0;
