@@ -19,8 +19,16 @@ fn inputs() -> (Vec<[f32; 3]>, Vec<[f32; 3]>, Vec<u32>) {
     let mut dirs = Vec::with_capacity(N);
     let mut app = Vec::with_capacity(N);
     for r in 0..4096 {
-        let o: [f32; 3] = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), 1.5];
-        let d = [rng.random_range(-0.3f32..0.3), rng.random_range(-0.3f32..0.3), -1.0];
+        let o: [f32; 3] = [
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            1.5,
+        ];
+        let d = [
+            rng.random_range(-0.3f32..0.3),
+            rng.random_range(-0.3f32..0.3),
+            -1.0,
+        ];
         let l = (d[0] * d[0] + d[1] * d[1] + 1.0f32).sqrt();
         let d = [d[0] / l, d[1] / l, d[2] / l];
         for k in 0..48 {
@@ -106,7 +114,10 @@ fn bench(c: &mut Criterion) {
     });
     let cache = f.forward_train(&pts, &dirs, &app).expect("fwd");
     g.bench_function("train_bwd", |b| {
-        b.iter(|| f.backward(black_box(&cache), &d_density, &d_rgb, &mut grads).expect("bwd"))
+        b.iter(|| {
+            f.backward(black_box(&cache), &d_density, &d_rgb, &mut grads)
+                .expect("bwd")
+        })
     });
     g.bench_function("train_fwd_bwd", |b| {
         b.iter(|| {

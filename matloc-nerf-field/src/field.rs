@@ -467,34 +467,60 @@ impl NerfactoField {
                 let h1 = &cache.h1[s * HIDDEN..e * HIDDEN];
                 let col_in = &cache.col_in[s * ci..e * ci];
                 let d_h2 = &mut acc.d_h2[..m * HIDDEN];
-                self.col[2].backward_with(h2, &d_z3[..3 * m], Some(d_h2), &wt_col[2], &mut acc.col[2]);
+                self.col[2].backward_with(
+                    h2,
+                    &d_z3[..3 * m],
+                    Some(d_h2),
+                    &wt_col[2],
+                    &mut acc.col[2],
+                );
                 relu_mask(h2, d_h2);
                 let d_h1 = &mut acc.d_h1[..m * HIDDEN];
                 self.col[1].backward_with(h1, d_h2, Some(d_h1), &wt_col[1], &mut acc.col[1]);
                 relu_mask(h1, d_h1);
                 let d_col_in = &mut acc.d_col_in[..m * ci];
-                self.col[0].backward_with(col_in, d_h1, Some(d_col_in), &wt_col[0], &mut acc.col[0]);
+                self.col[0].backward_with(
+                    col_in,
+                    d_h1,
+                    Some(d_col_in),
+                    &wt_col[0],
+                    &mut acc.col[0],
+                );
                 let d_geo_out = &mut acc.d_geo_out[..m * GEO_OUT];
                 for i in 0..m {
                     let raw = cache.geo_out[(s + i) * GEO_OUT];
                     d_geo_out[i * GEO_OUT] = d_density[s + i] * scale * trunc_exp_grad(raw);
-                    d_geo_out[i * GEO_OUT + 1..(i + 1) * GEO_OUT].copy_from_slice(
-                        &d_col_in[i * ci + SH_DIM..i * ci + SH_DIM + F_MLP_DIM],
-                    );
+                    d_geo_out[i * GEO_OUT + 1..(i + 1) * GEO_OUT]
+                        .copy_from_slice(&d_col_in[i * ci + SH_DIM..i * ci + SH_DIM + F_MLP_DIM]);
                     let j = cache.app[s + i];
                     if j != NO_APPEARANCE && a_dim > 0 {
                         let g = &mut acc.app[j as usize * a_dim..(j as usize + 1) * a_dim];
-                        for (gv, dv) in g.iter_mut().zip(&d_col_in[i * ci + SH_DIM + F_MLP_DIM..(i + 1) * ci]) {
+                        for (gv, dv) in g
+                            .iter_mut()
+                            .zip(&d_col_in[i * ci + SH_DIM + F_MLP_DIM..(i + 1) * ci])
+                        {
                             *gv += dv;
                         }
                     }
                 }
                 let geo_h = &cache.geo_h[s * HIDDEN..e * HIDDEN];
                 let d_geo_h = &mut acc.d_geo_h[..m * HIDDEN];
-                self.geo[1].backward_with(geo_h, d_geo_out, Some(d_geo_h), &wt_geo[1], &mut acc.geo[1]);
+                self.geo[1].backward_with(
+                    geo_h,
+                    d_geo_out,
+                    Some(d_geo_h),
+                    &wt_geo[1],
+                    &mut acc.geo[1],
+                );
                 relu_mask(geo_h, d_geo_h);
                 let enc = &cache.enc[s * F_POS_DIM..e * F_POS_DIM];
-                self.geo[0].backward_with(enc, d_geo_h, Some(d_enc_chunk), &wt_geo[0], &mut acc.geo[0]);
+                self.geo[0].backward_with(
+                    enc,
+                    d_geo_h,
+                    Some(d_enc_chunk),
+                    &wt_geo[0],
+                    &mut acc.geo[0],
+                );
                 acc
             })
             .map(|a| (a.geo, a.col, a.app))
@@ -524,7 +550,6 @@ impl NerfactoField {
         self.grid.backward(&cache.unit, &d_enc, &mut grads.table);
         Ok(())
     }
-
 }
 
 fn relu_mask(h: &[f32], d: &mut [f32]) {
@@ -591,7 +616,11 @@ impl FeatureField for NerfactoField {
                 |(h, out), ((enc, dens), feat)| {
                     let m = dens.len();
                     self.geo[0].forward::<HIDDEN>(enc, &mut h[..m * HIDDEN], true);
-                    self.geo[1].forward::<GEO_OUT>(&h[..m * HIDDEN], &mut out[..m * GEO_OUT], false);
+                    self.geo[1].forward::<GEO_OUT>(
+                        &h[..m * HIDDEN],
+                        &mut out[..m * GEO_OUT],
+                        false,
+                    );
                     for i in 0..m {
                         dens[i] = scale * trunc_exp(out[i * GEO_OUT]);
                         for (j, &d) in dims.iter().enumerate() {
@@ -625,7 +654,13 @@ impl FeatureField for NerfactoField {
             .zip(f_mlp.par_chunks(k * F_MLP_DIM))
             .zip(rgb.par_chunks_mut(k * 3))
             .for_each_init(
-                || (vec![0f32; k * ci], vec![0f32; k * HIDDEN], vec![0f32; k * HIDDEN]),
+                || {
+                    (
+                        vec![0f32; k * ci],
+                        vec![0f32; k * HIDDEN],
+                        vec![0f32; k * HIDDEN],
+                    )
+                },
                 |(xin, h1, h2), ((dirs, f), out)| {
                     let m = dirs.len();
                     for (i, row) in xin.chunks_exact_mut(ci).take(m).enumerate() {
@@ -667,7 +702,8 @@ impl NerfactoField {
         self.geo[1].forward::<GEO_OUT>(&h, &mut out, false);
         let mut d_out = vec![0f32; n * GEO_OUT];
         for i in 0..n {
-            d_out[i * GEO_OUT] = d_density[i] * self.density_scale() * trunc_exp_grad(out[i * GEO_OUT]);
+            d_out[i * GEO_OUT] =
+                d_density[i] * self.density_scale() * trunc_exp_grad(out[i * GEO_OUT]);
         }
         let mut d_h = vec![0f32; n * HIDDEN];
         let mut scratch1 = self.geo[1].zero_grad();

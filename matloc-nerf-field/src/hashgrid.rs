@@ -40,7 +40,10 @@ fn prefetch(base: *const f32, offset: usize) {
 fn encode_level_block(lv: &LevelInfo, tab: &[f32], pts: &[[f32; 3]], out: &mut [f32]) {
     let mut idx = [[0u32; 8]; PREFETCH_BLOCK];
     let mut wts = [[0f32; 8]; PREFETCH_BLOCK];
-    for (pb, ob) in pts.chunks(PREFETCH_BLOCK).zip(out.chunks_mut(2 * PREFETCH_BLOCK)) {
+    for (pb, ob) in pts
+        .chunks(PREFETCH_BLOCK)
+        .zip(out.chunks_mut(2 * PREFETCH_BLOCK))
+    {
         for (i, p) in pb.iter().enumerate() {
             (idx[i], wts[i]) = HashGrid::corners(lv, *p);
             // Corners c and c^1 differ only in x and usually share a cache line.
@@ -230,7 +233,8 @@ impl HashGrid {
         // neighbouring levels at the same time.
         let block = LEVEL_BLOCK.min(n).max(1);
         let blocks_per_level = n.div_ceil(block);
-        let mut items: Vec<(usize, usize, &mut [f32])> = Vec::with_capacity(N_LEVELS * blocks_per_level);
+        let mut items: Vec<(usize, usize, &mut [f32])> =
+            Vec::with_capacity(N_LEVELS * blocks_per_level);
         for (l, lo) in out.chunks_mut(2 * n).enumerate() {
             for (b, o) in lo.chunks_mut(2 * block).enumerate() {
                 items.push((l, b * block, o));

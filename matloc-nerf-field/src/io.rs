@@ -65,7 +65,10 @@ impl NerfactoField {
 
     fn tensors(&self) -> Vec<(String, &[f32])> {
         let mut v: Vec<(String, &[f32])> = vec![("hash_table".into(), &self.grid.table)];
-        for (name, l) in LAYER_NAMES.iter().zip(self.geo.iter().chain(self.col.iter())) {
+        for (name, l) in LAYER_NAMES
+            .iter()
+            .zip(self.geo.iter().chain(self.col.iter()))
+        {
             v.push((format!("{name}.weight"), &l.w));
             v.push((format!("{name}.bias"), &l.b));
         }
@@ -79,12 +82,13 @@ impl NerfactoField {
         let data = self.tensors();
         let mut views = Vec::with_capacity(data.len());
         for ((name, shape), (_, vals)) in shapes.into_iter().zip(&data) {
-            let view = TensorView::new(Dtype::F32, shape, bytemuck::cast_slice(vals)).map_err(
-                |e| FieldError::Safetensors {
-                    path: PathBuf::new(),
-                    message: e.to_string(),
-                },
-            )?;
+            let view =
+                TensorView::new(Dtype::F32, shape, bytemuck::cast_slice(vals)).map_err(|e| {
+                    FieldError::Safetensors {
+                        path: PathBuf::new(),
+                        message: e.to_string(),
+                    }
+                })?;
             views.push((name, view));
         }
         let mut meta = HashMap::new();

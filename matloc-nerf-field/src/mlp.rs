@@ -71,7 +71,10 @@ impl Linear {
     /// Two points are processed together so each weight row load feeds two FMAs.
     #[inline]
     pub fn forward<const O: usize>(&self, x: &[f32], y: &mut [f32], relu: bool) {
-        assert_eq!(self.n_out, O, "Linear::forward called with the wrong output width");
+        assert_eq!(
+            self.n_out, O,
+            "Linear::forward called with the wrong output width"
+        );
         let ni = self.n_in;
         let bias: &[f32; O] = self.b.as_slice().try_into().expect("bias length");
         let mut xs = x.chunks_exact(2 * ni);
@@ -132,7 +135,11 @@ impl Linear {
     /// Backward for a batch: accumulates `∂L/∂W`, `∂L/∂b` into `grad` and, if `dx` is given,
     /// writes `∂L/∂x` (`n × n_in`). `dy` must already include the activation's derivative.
     pub fn backward(&self, x: &[f32], dy: &[f32], dx: Option<&mut [f32]>, grad: &mut LinearGrad) {
-        let wt = if dx.is_some() { self.transposed() } else { Vec::new() };
+        let wt = if dx.is_some() {
+            self.transposed()
+        } else {
+            Vec::new()
+        };
         self.backward_with(x, dy, dx, &wt, grad);
     }
 
@@ -254,4 +261,3 @@ fn input_grad(ni: usize, no: usize, wt: &[f32], dy: &[f32], dx: &mut [f32]) {
         }
     }
 }
-

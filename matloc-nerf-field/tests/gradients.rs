@@ -1,8 +1,7 @@
 //! Finite-difference checks of every hand-written backward pass.
 
 use matloc_nerf_field::{
-    FieldConfig, FieldGrads, HashGrid, N_LEVELS, NerfactoField, SceneBox, trunc_exp,
-    trunc_exp_grad,
+    FieldConfig, FieldGrads, HashGrid, N_LEVELS, NerfactoField, SceneBox, trunc_exp, trunc_exp_grad,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -335,7 +334,11 @@ fn dense_and_hashed_levels_index_correctly() {
     let p = [0.3f32, 0.6, 0.9];
     let (idx, _) = HashGrid::corners(&lv, p);
     let s = lv.resolution as f32;
-    let c = [(0.3 * s).floor() as u32, (0.6 * s).floor() as u32, (0.9 * s).floor() as u32];
+    let c = [
+        (0.3 * s).floor() as u32,
+        (0.6 * s).floor() as u32,
+        (0.9 * s).floor() as u32,
+    ];
     let expect = (c[0] ^ c[1].wrapping_mul(2_654_435_761) ^ c[2].wrapping_mul(805_459_861))
         & ((1 << 19) - 1);
     assert_eq!(idx[0], expect);
@@ -358,7 +361,11 @@ fn encoding_matches_reference_trilinear() {
         for dz in 0..2u32 {
             for dy in 0..2u32 {
                 for dx in 0..2u32 {
-                    let v = [base[0] as u32 + dx, base[1] as u32 + dy, base[2] as u32 + dz];
+                    let v = [
+                        base[0] as u32 + dx,
+                        base[1] as u32 + dy,
+                        base[2] as u32 + dz,
+                    ];
                     let r = lv.resolution + 1;
                     let e = if lv.dense {
                         v[0] + r * (v[1] + r * v[2])

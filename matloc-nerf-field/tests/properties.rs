@@ -85,11 +85,13 @@ fn feature_subset_equals_slice_of_all_dims() {
     let all: Vec<usize> = (0..FEATURE_DIM).collect();
     let mut d_all = vec![0f32; pts.len()];
     let mut f_all = vec![0f32; pts.len() * FEATURE_DIM];
-    f.density_and_features(&pts, &all, &mut d_all, &mut f_all).unwrap();
+    f.density_and_features(&pts, &all, &mut d_all, &mut f_all)
+        .unwrap();
     let dims = [40usize, 3, 0, 31, 46];
     let mut d_sub = vec![0f32; pts.len()];
     let mut f_sub = vec![0f32; pts.len() * dims.len()];
-    f.density_and_features(&pts, &dims, &mut d_sub, &mut f_sub).unwrap();
+    f.density_and_features(&pts, &dims, &mut d_sub, &mut f_sub)
+        .unwrap();
     assert_eq!(d_all, d_sub);
     for i in 0..pts.len() {
         for (j, &d) in dims.iter().enumerate() {
@@ -142,7 +144,10 @@ fn bad_inputs_are_typed_errors() {
     };
     assert!(matches!(
         NerfactoField::new(bad),
-        Err(FieldError::InvalidConfig { field: "log2_table_size", .. })
+        Err(FieldError::InvalidConfig {
+            field: "log2_table_size",
+            ..
+        })
     ));
 }
 

@@ -25,6 +25,6 @@ pub use render::{RenderOptions, render_rays, render_rays_single_pass};
 pub use sampler::{MarchConfig, Spacing, importance_resample, march_ray, sample_rays};
 pub use train::{Background, Progress, SamplerKind, StepStats, TrainConfig, Trainer};
 pub use volume::{
-    RenderGradients, RenderedRays, SampleGradients, SampleValues, compute_weights, volume_render,
-    volume_render_backward,
+    RenderGradients, RenderedRays, SampleGradients, SampleValues, compute_weights, distortion_loss,
+    volume_render, volume_render_backward,
 };

@@ -116,7 +116,8 @@ pub fn render_rays(
                 .filter(|(_, s)| !s.done)
                 .map(|(j, s)| {
                     let r = tile_start + j;
-                    let (iv, next) = march_from(rays, r, grid, &opts.march, s.step, opts.samples_per_round);
+                    let (iv, next) =
+                        march_from(rays, r, grid, &opts.march, s.step, opts.samples_per_round);
                     (j, iv, next)
                 })
                 .collect();

@@ -212,7 +212,12 @@ pub fn volume_render_backward(
     for (what, buf, width, used) in [
         ("d_rgb", g.rgb, 3, !g.rgb.is_empty()),
         ("d_depth", g.depth, 1, !g.depth.is_empty()),
-        ("d_accumulation", g.accumulation, 1, !g.accumulation.is_empty()),
+        (
+            "d_accumulation",
+            g.accumulation,
+            1,
+            !g.accumulation.is_empty(),
+        ),
         ("d_features", g.features, nd, !g.features.is_empty()),
     ] {
         if used && buf.len() != n * width {
@@ -235,11 +240,8 @@ pub fn volume_render_backward(
     let mut rgb_parts = Vec::with_capacity(groups);
     let mut feat_parts = Vec::with_capacity(groups);
     {
-        let (mut s_rest, mut c_rest, mut f_rest) = (
-            &mut out.sigma[..],
-            &mut out.rgb[..],
-            &mut out.features[..],
-        );
+        let (mut s_rest, mut c_rest, mut f_rest) =
+            (&mut out.sigma[..], &mut out.rgb[..], &mut out.features[..]);
         for gi in 0..groups {
             let a = samples.offsets[gi * RAY_GROUP];
             let b = samples.offsets[((gi + 1) * RAY_GROUP).min(n)];
@@ -336,4 +338,82 @@ pub fn volume_render_backward(
         }
     }
     Ok(out)
+}
+
+/// mip-NeRF 360's distortion loss of every ray and its gradient w.r.t. σ.
+///
+/// `L = Σ_ij w_i w_j |m_i − m_j| + ⅓ Σ_i w_i² (s1_i − s0_i)` with `m` the interval midpoints
+/// in the normalised coordinates `s0`/`s1` (per sample, ascending along each ray, e.g. the
+/// sampler's spacing mapped to `[0,1]`). It pulls each ray's weight into one compact
+/// interval, which suppresses fog and floaters that few-view training otherwise keeps.
+/// Evaluated in O(n) per ray with prefix sums.
+pub fn distortion_loss(
+    samples: &RaySamples,
+    sigma: &[f32],
+    s0: &[f32],
+    s1: &[f32],
+) -> Result<(Vec<f32>, Vec<f32>), RenderError> {
+    let ns = samples.len();
+    for (what, len) in [("sigma", sigma.len()), ("s0", s0.len()), ("s1", s1.len())] {
+        if len != ns {
+            return Err(RenderError::LengthMismatch {
+                what,
+                expected: ns,
+                actual: len,
+            });
+        }
+    }
+    let n = samples.num_rays();
+    let per_ray: Vec<(f32, Vec<f32>)> = (0..n)
+        .into_par_iter()
+        .with_min_len(64)
+        .map(|r| {
+            let rg = samples.range(r);
+            let m = rg.len();
+            let mut w = Vec::with_capacity(m);
+            let mut trans = Vec::with_capacity(m);
+            let mut t = 1f32;
+            for k in rg.clone() {
+                let al = 1.0 - (-sigma[k] * (samples.t_end[k] - samples.t_start[k])).exp();
+                w.push(t * al);
+                t *= 1.0 - al;
+                trans.push(t);
+            }
+            let mid: Vec<f32> = rg.clone().map(|k| 0.5 * (s0[k] + s1[k])).collect();
+            let del: Vec<f32> = rg.clone().map(|k| s1[k] - s0[k]).collect();
+            let (a_tot, b_tot): (f32, f32) = w
+                .iter()
+                .zip(&mid)
+                .fold((0.0, 0.0), |(a, b), (wi, mi)| (a + wi, b + wi * mi));
+            let mut a = 0f32;
+            let mut b = 0f32;
+            let mut loss = 0f32;
+            let mut g = vec![0f32; m];
+            for i in 0..m {
+                // Σ_j w_j |m_i − m_j| split into j < i and j > i.
+                let after_a = a_tot - a - w[i];
+                let after_b = b_tot - b - w[i] * mid[i];
+                let s = mid[i] * a - b + after_b - mid[i] * after_a;
+                loss += w[i] * s + w[i] * w[i] * del[i] / 3.0;
+                g[i] = 2.0 * s + 2.0 / 3.0 * w[i] * del[i];
+                a += w[i];
+                b += w[i] * mid[i];
+            }
+            // ∂L/∂τ_k = T_{k+1} g_k − Σ_{j>k} w_j g_j.
+            let mut d_sigma = vec![0f32; m];
+            let mut suffix = 0f32;
+            for (j, k) in rg.enumerate().rev() {
+                d_sigma[j] = (trans[j] * g[j] - suffix) * (samples.t_end[k] - samples.t_start[k]);
+                suffix += w[j] * g[j];
+            }
+            (loss, d_sigma)
+        })
+        .collect();
+    let mut losses = Vec::with_capacity(n);
+    let mut d = Vec::with_capacity(ns);
+    for (l, g) in per_ray {
+        losses.push(l);
+        d.extend(g);
+    }
+    Ok((losses, d))
 }

@@ -1,8 +1,8 @@
 //! Finite-difference checks of the volume-rendering backward, and sampler properties.
 
 use matloc_render::{
-    MarchConfig, RayBatch, RaySamples, RenderGradients, SampleValues, Spacing,
-    importance_resample, march_ray, volume_render, volume_render_backward,
+    MarchConfig, RayBatch, RaySamples, RenderGradients, SampleValues, Spacing, importance_resample,
+    march_ray, volume_render, volume_render_backward,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -66,9 +66,8 @@ fn loss(c: &Case, sigma: &[f32], rgb: &[f32], feat: &[f32], bg: [f32; 3]) -> f64
         num_dims: c.nd,
     };
     let o = volume_render(&c.samples, &v, bg).unwrap();
-    let dot = |a: &[f32], b: &[f32]| -> f64 {
-        a.iter().zip(b).map(|(x, y)| *x as f64 * *y as f64).sum()
-    };
+    let dot =
+        |a: &[f32], b: &[f32]| -> f64 { a.iter().zip(b).map(|(x, y)| *x as f64 * *y as f64).sum() };
     dot(&o.rgb, &c.g_rgb)
         + dot(&o.depth, &c.g_depth)
         + dot(&o.accumulation, &c.g_acc)
@@ -223,4 +222,31 @@ fn importance_samples_concentrate_where_weight_is() {
     for k in 1..fine.len() {
         assert!(fine.t_start[k] >= fine.t_start[k - 1]);
     }
+}
+
+#[test]
+fn distortion_gradient_matches_finite_differences() {
+    let c = case();
+    let ns = c.samples.len();
+    // Normalised coordinates: any increasing map of t works for the check.
+    let s0: Vec<f32> = c.samples.t_start.iter().map(|t| t / 5.0).collect();
+    let s1: Vec<f32> = c.samples.t_end.iter().map(|t| t / 5.0).collect();
+    let w_r: Vec<f32> = (0..c.samples.num_rays()).map(|r| 1.0 + r as f32).collect();
+    let total = |sigma: &[f32]| -> f64 {
+        let (l, _) = matloc_render::distortion_loss(&c.samples, sigma, &s0, &s1).unwrap();
+        l.iter().zip(&w_r).map(|(a, b)| *a as f64 * *b as f64).sum()
+    };
+    let (_, d) = matloc_render::distortion_loss(&c.samples, &c.sigma, &s0, &s1).unwrap();
+    for r in 0..c.samples.num_rays() {
+        for k in c.samples.range(r) {
+            let eps = 1e-3f32;
+            let mut p = c.sigma.clone();
+            p[k] += eps;
+            let mut m = c.sigma.clone();
+            m[k] -= eps;
+            let fd = (total(&p) - total(&m)) / (2.0 * eps as f64);
+            assert_close(&format!("dist sigma[{k}]"), d[k] * w_r[r], fd);
+        }
+    }
+    assert_eq!(d.len(), ns);
 }
