@@ -12,6 +12,20 @@
 //! [`synthesize`] renders everything into a nerfstudio dataset on disk.
 //!
 //! Presets ([`SynthConfig::preset`]): `tiny` (CI), `small` (demo), `rubble`, `building`.
+//!
+//! Design notes:
+//! - Lighting is Lambertian with a fixed sun and a hemispherical sky term, so a surface point
+//!   has the same colour from every view (what a NeRF can learn). Texture detail finer than the
+//!   pixel footprint is prefiltered analytically (noise octaves fade out, stripes and windows are
+//!   box-filtered); only silhouettes, creases and shadow edges get extra jittered rays.
+//! - Depth is the z-depth of the pixel-centre ray, never averaged across an edge, so lifting a
+//!   depth pixel with [`matloc_core::Camera::unproject`] lands exactly on a surface.
+//! - The terrain is a triangulated height grid (two triangles per cell) traced with a two-level
+//!   DDA over min/max blocks; objects are convex polyhedra (boxes, roofs, rubble chunks) and
+//!   ellipsoids (tree crowns) in a binned-SAH BVH. Beyond the grid the ground is the flat plane
+//!   the terrain apron fades into, so oblique views never see sky.
+//! - Everything derives from the seed through counter-based hashing (no `rand` dependency), so
+//!   output is bit-identical across thread counts.
 
 mod presets;
 mod raycast;

@@ -190,7 +190,7 @@ pub(crate) fn detail(period: f32, fw: f32) -> f32 {
 }
 
 /// Scattered round spots on a jittered grid of `cell`-sized cells: each cell holds a spot with
-/// probability `prob`, radius in `[rmin, rmax]` (`rmax < cell / 2`). Returns the box-filtered
+/// probability `prob`, radius in `[rmin, rmax]` (`1.45 rmax <= cell / 2`, ragged edges included). Returns the box-filtered
 /// coverage and a per-spot random value for its colour.
 #[inline]
 pub(crate) fn spots(
@@ -210,10 +210,15 @@ pub(crate) fn spots(
     }
     let h2 = hash3(ci as i32, cj as i32, 92, seed);
     let r = rmin + (rmax - rmin) * unit(h2);
-    let room = 0.5 * cell - r;
+    // Ragged outlines reach ~1.45 r; keep them inside the cell.
+    let room = (0.5 * cell - 1.45 * r).max(0.0);
     let cx = (ci + 0.5) * cell + room * (2.0 * unit(h2.rotate_left(11)) - 1.0);
     let cy = (cj + 0.5) * cell + room * (2.0 * unit(h2.rotate_left(22)) - 1.0);
-    let d = ((x - cx) * (x - cx) + (y - cy) * (y - cy)).sqrt();
+    let mut d = ((x - cx) * (x - cx) + (y - cy) * (y - cy)).sqrt();
+    if d < 1.3 * r + fw {
+        // Ragged outlines: real shrubs and stains are not discs.
+        d += 0.3 * r * noise2(x * 2.5 / r, y * 2.5 / r, seed ^ 0x0D);
+    }
     // Spots far below the footprint would flicker: fade them to their area-averaged tint.
     let cov = pulse(d, -r, r, fw) * detail(4.0 * r, fw);
     (cov, unit(hash3(ci as i32, cj as i32, 93, seed)))
@@ -340,7 +345,7 @@ impl World {
                 );
                 let grass = vary(grass, 0.55, 1.2 * clump + 0.5 * fine);
                 // Shrubs and flower/weed spots: blob features at the 1 m scale.
-                let (shrub, sr) = spots(xf, yf, 3.0, 0.35, 0.3, 1.1, s ^ 0x15, fw);
+                let (shrub, sr) = spots(xf, yf, 3.0, 0.35, 0.3, 1.0, s ^ 0x15, fw);
                 let shrub_col = mix(srgb(40, 62, 25), srgb(95, 105, 40), sr);
                 let grass = mix(grass, shrub_col, shrub);
                 let (flower, fr) = spots(xf, yf, 1.3, 0.2, 0.15, 0.35, s ^ 0x16, fw);
@@ -556,7 +561,7 @@ impl World {
         let grit = fbm2(x, y, 5.0, 3, bd.seed ^ 0x50, fw);
         let stains = fbm2(x, y, 0.25, 4, bd.seed ^ 0x51, fw);
         let mut c = vary(bd.roof_col, 0.35, grit + 1.2 * stains);
-        let (puddle, pr) = spots(x, y, 4.0, 0.4, 0.5, 1.6, bd.seed ^ 0x52, fw);
+        let (puddle, pr) = spots(x, y, 4.0, 0.4, 0.5, 1.35, bd.seed ^ 0x52, fw);
         c = scale(c, 1.0 - (0.25 + 0.2 * pr) * puddle);
         // Membrane seams every 2 m in one direction.
         let seam = periodic_pulse((l[0] as f32).rem_euclid(2.0), 0.0, 0.06, 2.0, fw);
