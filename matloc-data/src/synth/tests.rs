@@ -516,6 +516,34 @@ fn images_are_richly_textured() {
 }
 
 #[test]
+fn preset_sizes_match_their_purpose() {
+    for (name, train_range, tests, size) in [
+        ("tiny", 40..=60, 10, (160, 120)),
+        ("small", 150..=250, 30, (320, 240)),
+        ("rubble", 200..=600, 40, (320, 240)),
+        ("building", 200..=600, 40, (320, 240)),
+    ] {
+        let cfg = SynthConfig::preset(name).unwrap();
+        let (world, plan) = generate(&cfg).unwrap();
+        let train = plan
+            .frames
+            .iter()
+            .filter(|f| f.split == Split::Train)
+            .count();
+        assert!(
+            train_range.contains(&train),
+            "{name}: {train} training views"
+        );
+        assert_eq!(plan.frames.len() - train, tests, "{name}");
+        let c = plan.frames[0].camera;
+        assert_eq!((c.width, c.height), size, "{name}");
+        let (lo, hi) = world.bounds();
+        assert!(hi.x - lo.x >= cfg.world.extent_m, "{name}");
+        assert!(world.building_count() > 0, "{name}");
+    }
+}
+
+#[test]
 fn presets_and_config_errors() {
     for name in PRESET_NAMES {
         let cfg = SynthConfig::preset(name).unwrap();
