@@ -769,6 +769,7 @@ impl World {
             Class::RoofUnit(_) => Material::Roof,
             Class::Rock(..) => Material::Rubble,
             Class::Crown(..) | Class::Trunk => Material::Vegetation,
+            Class::CarBody(_) | Class::CarCabin(_) => Material::Vehicle,
         }
     }
 

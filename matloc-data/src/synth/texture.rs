@@ -324,6 +324,16 @@ impl World {
                 mix(c, srgb(120, 125, 50), (0.3 * hue).clamp(0.0, 0.3))
             }
             Class::Trunk => vary(srgb(85, 65, 45), 0.3, fbm3(pf, 4.0, 3, s ^ 0x77, fw)),
+            Class::CarBody(paint) => vary(paint, 0.06, fbm3(pf, 2.0, 2, s ^ 0x78, fw)),
+            Class::CarCabin(paint) => {
+                if n.z > 0.7 {
+                    // Roof panel with a darker sunroof/antenna strip for some structure.
+                    let c = vary(paint, 0.06, fbm3(pf, 2.0, 2, s ^ 0x79, fw));
+                    scale(c, 0.9)
+                } else {
+                    srgb(35, 40, 48)
+                }
+            }
         }
     }
 

@@ -36,6 +36,8 @@ pub struct WorldConfig {
     pub rocks_per_field: usize,
     /// Number of trees.
     pub trees: usize,
+    /// Parked cars per 100 m of road (both sides together); static, like everything else.
+    pub cars_per_100m: f64,
     /// Sun azimuth, degrees clockwise from north.
     pub sun_azimuth_deg: f64,
     /// Sun elevation above the horizon, degrees.
@@ -57,6 +59,7 @@ impl Default for WorldConfig {
             rubble_radius_m: [8.0, 16.0],
             rocks_per_field: 250,
             trees: 60,
+            cars_per_100m: 4.0,
             sun_azimuth_deg: 150.0,
             sun_elevation_deg: 50.0,
         }
@@ -77,6 +80,7 @@ impl WorldConfig {
             }
         }
         for (field, v) in [
+            ("world.cars_per_100m", self.cars_per_100m),
             ("world.margin_m", self.margin_m),
             ("world.terrain_relief_m", self.terrain_relief_m),
         ] {
@@ -139,6 +143,8 @@ pub enum Material {
     Rubble,
     /// Tree crown or trunk.
     Vegetation,
+    /// A parked car.
+    Vehicle,
 }
 
 /// The piecewise-linear terrain: a height grid split into two triangles per cell along the
@@ -426,6 +432,10 @@ pub(crate) enum Class {
     Crown(Rgb, u32),
     /// Tree trunk.
     Trunk,
+    /// Car body with its paint colour.
+    CarBody(Rgb),
+    /// Car cabin (glass on the sides) with its paint colour.
+    CarCabin(Rgb),
 }
 
 /// A rubble field: a debris pile on dusty ground.
@@ -612,6 +622,16 @@ impl World {
             &terrain,
             &road_dist,
             &buildings,
+            &rubble,
+        );
+
+        add_cars(
+            &mut b,
+            config,
+            &mut root.fork(8),
+            half,
+            &terrain,
+            &roads,
             &rubble,
         );
 
@@ -1169,4 +1189,95 @@ fn add_trees(
             break;
         }
     }
+}
+
+const CAR_PALETTE: [(u8, u8, u8); 8] = [
+    (235, 235, 232),
+    (170, 172, 175),
+    (35, 36, 40),
+    (150, 30, 30),
+    (40, 60, 120),
+    (90, 95, 100),
+    (200, 190, 160),
+    (30, 80, 60),
+];
+
+fn add_cars(
+    b: &mut Builder,
+    config: &WorldConfig,
+    rng: &mut Rng,
+    half: f64,
+    terrain: &Terrain,
+    roads: &[Road],
+    rubble: &[RubbleField],
+) {
+    if config.cars_per_100m <= 0.0 {
+        return;
+    }
+    let mean_gap = 100.0 / config.cars_per_100m;
+    // Parked cars sit on the road surface; a slightly lower grid of near-road cells would not
+    // change anything visible, so use the terrain height at the car's centre.
+    for (ri, r) in roads.iter().enumerate() {
+        let total = *r.cum.last().unwrap_or(&0.0);
+        let mut s = rng.range(0.0, mean_gap);
+        while s < total {
+            let step = mean_gap * rng.range(0.3, 1.7);
+            let side = if rng.f64() < 0.5 { 1.0 } else { -1.0 };
+            let seg = r.cum.partition_point(|&c| c <= s).clamp(1, r.pts.len() - 1) - 1;
+            let (p0, p1) = (r.pts[seg], r.pts[seg + 1]);
+            let len = r.cum[seg + 1] - r.cum[seg];
+            let u = ((s - r.cum[seg]) / len).clamp(0.0, 1.0);
+            let dir = [(p1[0] - p0[0]) / len, (p1[1] - p0[1]) / len];
+            let nrm = [-dir[1], dir[0]];
+            let off = side * (r.half_width - 1.4);
+            let c = [
+                p0[0] + u * (p1[0] - p0[0]) + off * nrm[0],
+                p0[1] + u * (p1[1] - p0[1]) + off * nrm[1],
+            ];
+            s += step;
+            let inside = c[0].abs() < half && c[1].abs() < half;
+            let clear_of_rubble = rubble
+                .iter()
+                .all(|f| dist2(f.center, c).sqrt() > f.radius + 4.0);
+            // Keep junctions free: no other road's carriageway within reach.
+            let clear_of_junctions = roads.iter().enumerate().all(|(rj, o)| {
+                rj == ri
+                    || o.pts
+                        .windows(2)
+                        .all(|w| seg_dist(w[0], w[1], c) > o.half_width + 4.0)
+            });
+            if !(inside && clear_of_rubble && clear_of_junctions) {
+                continue;
+            }
+            let heading = if rng.f64() < 0.5 { 1.0 } else { -1.0 };
+            let ax = Vector3::new(dir[0] * heading, dir[1] * heading, 0.0);
+            let ay = Vector3::new(-ax.y, ax.x, 0.0);
+            let z = Vector3::z();
+            let g = terrain.height_at(c[0], c[1]);
+            let (hl, hw) = (rng.range(2.0, 2.4), rng.range(0.85, 0.95));
+            let (cr, cg, cb) = CAR_PALETTE[rng.index(CAR_PALETTE.len())];
+            let paint = srgb(cr, cg, cb);
+            let body_c = Vector3::new(c[0], c[1], g + 0.6);
+            let body_h = [hl, hw, 0.4];
+            b.convex(
+                box_planes(body_c, [ax, ay, z], body_h),
+                box_aabb(body_c, [ax, ay, z], body_h),
+                Class::CarBody(paint),
+            );
+            let cab_c = body_c + ax * (-0.15 * hl) + z * 0.65;
+            let cab_h = [0.55 * hl, 0.9 * hw, 0.25];
+            b.convex(
+                box_planes(cab_c, [ax, ay, z], cab_h),
+                box_aabb(cab_c, [ax, ay, z], cab_h),
+                Class::CarCabin(paint),
+            );
+        }
+    }
+}
+
+fn seg_dist(a: [f64; 2], b: [f64; 2], p: [f64; 2]) -> f64 {
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    let l2 = (dx * dx + dy * dy).max(1e-12);
+    let t = (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / l2).clamp(0.0, 1.0);
+    dist2([a[0] + t * dx, a[1] + t * dy], p).sqrt()
 }
