@@ -478,8 +478,7 @@ impl World {
         let s = bd.seed;
         let l = bd.local(p.x, p.y);
         // Horizontal coordinate along the wall from its left corner, and the wall's length.
-        let nl = bd.local(p.x + n.x, p.y + n.y);
-        let nl = [nl[0] - bd.local(p.x, p.y)[0], nl[1] - bd.local(p.x, p.y)[1]];
+        let nl = bd.local_dir(n.x, n.y);
         let (u, len, face) = if nl[0].abs() > nl[1].abs() {
             (
                 l[1] * nl[0].signum() + bd.half[1],

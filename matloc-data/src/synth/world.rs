@@ -378,6 +378,14 @@ impl Building {
         ]
     }
 
+    /// World direction → building-local direction (rotation only).
+    pub fn local_dir(&self, dx: f64, dy: f64) -> [f64; 2] {
+        [
+            dx * self.ax[0] + dy * self.ax[1],
+            -dx * self.ax[1] + dy * self.ax[0],
+        ]
+    }
+
     fn ay(&self) -> [f64; 2] {
         [-self.ax[1], self.ax[0]]
     }
@@ -1215,8 +1223,8 @@ fn add_cars(
         return;
     }
     let mean_gap = 100.0 / config.cars_per_100m;
-    // Parked cars sit on the road surface; a slightly lower grid of near-road cells would not
-    // change anything visible, so use the terrain height at the car's centre.
+    // Roads are not flattened into the terrain; the relief is gentle enough that a car placed
+    // at the height under its centre neither floats visibly nor sinks.
     for (ri, r) in roads.iter().enumerate() {
         let total = *r.cum.last().unwrap_or(&0.0);
         let mut s = rng.range(0.0, mean_gap);
