@@ -47,7 +47,7 @@ use thiserror::Error;
 pub use presets::PRESET_NAMES;
 pub use raycast::Hit;
 pub use render::{RenderOptions, Rendered};
-pub use survey::{SurveyConfig, SurveyGeometry, SurveyPlan, plan_survey};
+pub use survey::{SurveyConfig, SurveyGeometry, SurveyPlan, plan_survey, survey_geometry};
 pub use world::{Material, World, WorldConfig};
 pub use write::{Progress, generate, synthesize};
 
