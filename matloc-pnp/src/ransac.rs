@@ -79,14 +79,23 @@ pub struct UniformSampler {
 }
 
 impl UniformSampler {
-    /// A sampler over `num_data` points (must be at least the sample size).
+    /// A sampler over `num_data` points.
+    ///
+    /// Sampling panics if `num_data` is below the requested sample size.
     pub fn new(num_data: usize) -> Self {
         Self { num_data }
     }
 }
 
 /// Fills `sample` with distinct indices drawn uniformly from `0..n` (rejection; samples are tiny).
+///
+/// Panics when `n < sample.len()` (no such sample exists; [`ransac`] never asks for one).
 fn distinct_uniform(rng: &mut dyn RngCore, n: usize, sample: &mut [usize]) {
+    assert!(
+        n >= sample.len(),
+        "cannot draw {} distinct indices from {n}",
+        sample.len()
+    );
     for k in 0..sample.len() {
         loop {
             let candidate = rng.random_range(0..n);

@@ -441,3 +441,18 @@ fn epnp_solver_on_nearly_planar_relief() {
         assert!(t < 0.1 && r < 0.1, "t {t} r {r}");
     }
 }
+
+/// A larger batch for the record (`cargo test -p matloc-pnp --release -- --ignored --nocapture`).
+#[test]
+#[ignore = "about a minute; run by hand for the report"]
+fn success_rate_large_batches() {
+    for (k, ratio) in [0.5, 0.8].into_iter().enumerate() {
+        let r = run_batch(500 + k as u64, 1000, ratio, false, false);
+        report(
+            &format!("general, {:.0} % outliers, 1000 cases", ratio * 100.0),
+            &r,
+        );
+    }
+    let r = run_batch(510, 300, 0.9, false, false);
+    report("general, 90 % outliers, 300 cases", &r);
+}
