@@ -304,7 +304,12 @@ mod tests {
     #[test]
     fn look_at_keeps_image_up_towards_up() {
         // Looking north with z up: image right is east, image down is world -z.
-        let p = look_at(&Point3::origin(), &Point3::new(0.0, 10.0, 0.0), &Vector3::z()).unwrap();
+        let p = look_at(
+            &Point3::origin(),
+            &Point3::new(0.0, 10.0, 0.0),
+            &Vector3::z(),
+        )
+        .unwrap();
         assert!((p.transform_vector(&Vector3::x()) - Vector3::x()).norm() < 1e-12);
         assert!((p.inverse_transform_vector(&Vector3::x()) - Vector3::x()).norm() < 1e-12);
         assert!((p.inverse_transform_vector(&Vector3::y()) + Vector3::z()).norm() < 1e-12);

@@ -2,8 +2,8 @@
 
 use std::path::{Path, PathBuf};
 
-use matloc_core::pose::{Pose, camera_center, viewing_direction};
 use matloc_core::Camera;
+use matloc_core::pose::{Pose, camera_center, viewing_direction};
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
