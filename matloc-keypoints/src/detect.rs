@@ -1,0 +1,370 @@
+//! FAST-9 detection with Harris ranking, orientation and rotated BRIEF description.
+
+use std::sync::OnceLock;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::gray::GrayImage;
+
+/// A 256-bit binary descriptor.
+pub type Descriptor = [u64; 4];
+
+/// A detected keypoint, in level-0 pixel coordinates.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Keypoint {
+    /// Continuous `x` (pixel centres at `+0.5`).
+    pub x: f32,
+    /// Continuous `y`.
+    pub y: f32,
+    /// Pyramid level it was found on.
+    pub level: u8,
+    /// Orientation (radians, image axes: x right, y down).
+    pub angle: f32,
+    /// Harris response (for ranking).
+    pub response: f32,
+}
+
+/// Detector settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct KeypointConfig {
+    /// Keypoints to keep over all levels.
+    pub max_keypoints: usize,
+    /// Pyramid levels.
+    pub levels: usize,
+    /// Scale between levels.
+    pub scale_factor: f32,
+    /// FAST intensity threshold (images in `[0, 1]`; ORB's 20/255 ≈ 0.08).
+    pub fast_threshold: f32,
+    /// Cell size (pixels of the level) of the spreading grid; each cell keeps at most a share
+    /// of the level's budget proportional to its area, twice over.
+    pub cell_px: usize,
+}
+
+impl Default for KeypointConfig {
+    fn default() -> Self {
+        Self {
+            max_keypoints: 1500,
+            levels: 5,
+            scale_factor: 1.2,
+            fast_threshold: 0.05,
+            cell_px: 32,
+        }
+    }
+}
+
+/// Patch radius of the orientation moment and the BRIEF pattern.
+const PATCH_RADIUS: i32 = 15;
+/// Keypoints closer to the border than this are dropped (patch + Harris window).
+const BORDER: usize = PATCH_RADIUS as usize + 2;
+
+/// The 16-pixel Bresenham circle of radius 3, clockwise from the top.
+const CIRCLE: [(i32, i32); 16] = [
+    (0, -3),
+    (1, -3),
+    (2, -2),
+    (3, -1),
+    (3, 0),
+    (3, 1),
+    (2, 2),
+    (1, 3),
+    (0, 3),
+    (-1, 3),
+    (-2, 2),
+    (-3, 1),
+    (-3, 0),
+    (-3, -1),
+    (-2, -2),
+    (-1, -3),
+];
+
+/// The BRIEF test pattern: 256 point pairs from an isotropic Gaussian (σ = 31/5, as in
+/// Calonder et al.) restricted to the disk of radius 15, from a fixed seed.
+fn pattern() -> &'static [[(f32, f32); 2]; 256] {
+    static PATTERN: OnceLock<[[(f32, f32); 2]; 256]> = OnceLock::new();
+    PATTERN.get_or_init(|| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0x000b_5eed);
+        let normal = Normal::new(0.0f32, 31.0 / 5.0).expect("valid sigma");
+        let mut draw = || loop {
+            let (x, y) = (normal.sample(&mut rng), normal.sample(&mut rng));
+            if x * x + y * y <= (PATCH_RADIUS as f32 - 0.5).powi(2) {
+                return (x, y);
+            }
+        };
+        let mut p = [[(0.0, 0.0); 2]; 256];
+        for pair in &mut p {
+            *pair = [draw(), draw()];
+        }
+        p
+    })
+}
+
+/// True if 9 contiguous bits (circularly) of the 16-bit mask are set.
+#[inline]
+fn has_arc9(mask: u32) -> bool {
+    let m = mask | (mask << 16);
+    let mut run = m;
+    for k in 1..9 {
+        run &= m >> k;
+    }
+    run != 0
+}
+
+/// FAST-9 test at `(x, y)` (caller keeps 3 pixels from the border).
+#[inline]
+fn is_fast_corner(img: &GrayImage, x: usize, y: usize, t: f32) -> bool {
+    let c = img.at(x, y);
+    let (hi, lo) = (c + t, c - t);
+    // Reject quickly with the four compass points: a 9-arc covers at least two of them.
+    let probe = |i: usize| {
+        let (dx, dy) = CIRCLE[i];
+        img.at((x as i32 + dx) as usize, (y as i32 + dy) as usize)
+    };
+    let compass = [probe(0), probe(4), probe(8), probe(12)];
+    let brighter = compass.iter().filter(|&&v| v > hi).count();
+    let darker = compass.iter().filter(|&&v| v < lo).count();
+    if brighter < 2 && darker < 2 {
+        return false;
+    }
+    let (mut bright_mask, mut dark_mask) = (0u32, 0u32);
+    for (i, (dx, dy)) in CIRCLE.iter().enumerate() {
+        let v = img.at((x as i32 + dx) as usize, (y as i32 + dy) as usize);
+        if v > hi {
+            bright_mask |= 1 << i;
+        } else if v < lo {
+            dark_mask |= 1 << i;
+        }
+    }
+    has_arc9(bright_mask) || has_arc9(dark_mask)
+}
+
+/// Harris response (k = 0.04) over a 7×7 window of central-difference gradients.
+fn harris(img: &GrayImage, x: usize, y: usize) -> f32 {
+    let (mut a, mut b, mut c) = (0.0f32, 0.0f32, 0.0f32);
+    for yy in y - 3..=y + 3 {
+        for xx in x - 3..=x + 3 {
+            let ix = 0.5 * (img.at(xx + 1, yy) - img.at(xx - 1, yy));
+            let iy = 0.5 * (img.at(xx, yy + 1) - img.at(xx, yy - 1));
+            a += ix * ix;
+            b += iy * iy;
+            c += ix * iy;
+        }
+    }
+    a * b - c * c - 0.04 * (a + b) * (a + b)
+}
+
+/// Orientation by the intensity centroid over the disk of radius 15.
+fn orientation(img: &GrayImage, x: usize, y: usize) -> f32 {
+    let (mut m01, mut m10) = (0.0f32, 0.0f32);
+    for dy in -PATCH_RADIUS..=PATCH_RADIUS {
+        let span = ((PATCH_RADIUS * PATCH_RADIUS - dy * dy) as f32).sqrt() as i32;
+        let yy = (y as i32 + dy) as usize;
+        for dx in -span..=span {
+            let v = img.at((x as i32 + dx) as usize, yy);
+            m10 += dx as f32 * v;
+            m01 += dy as f32 * v;
+        }
+    }
+    m01.atan2(m10)
+}
+
+/// Rotated BRIEF on the smoothed image.
+fn describe(smooth: &GrayImage, x: usize, y: usize, angle: f32) -> Descriptor {
+    let (s, c) = angle.sin_cos();
+    let sample = |(px, py): (f32, f32)| {
+        let rx = (c * px - s * py).round() as i32;
+        let ry = (s * px + c * py).round() as i32;
+        smooth.at((x as i32 + rx) as usize, (y as i32 + ry) as usize)
+    };
+    let mut d = [0u64; 4];
+    for (i, [p, q]) in pattern().iter().enumerate() {
+        if sample(*p) < sample(*q) {
+            d[i / 64] |= 1 << (i % 64);
+        }
+    }
+    d
+}
+
+/// Keypoints of one level before the spreading cap: `(x, y, response)` in level pixels.
+fn level_candidates(img: &GrayImage, t: f32) -> Vec<(usize, usize, f32)> {
+    let (w, h) = (img.width(), img.height());
+    if w <= 2 * BORDER || h <= 2 * BORDER {
+        return Vec::new();
+    }
+    let rows: Vec<Vec<(usize, f32)>> = (BORDER..h - BORDER)
+        .into_par_iter()
+        .map(|y| {
+            (BORDER..w - BORDER)
+                .filter(|&x| is_fast_corner(img, x, y, t))
+                .map(|x| (x, harris(img, x, y)))
+                .collect()
+        })
+        .collect();
+    // 3×3 non-maximum suppression among corners (ties keep the first in raster order).
+    let mut score = vec![f32::NEG_INFINITY; w * h];
+    for (k, row) in rows.iter().enumerate() {
+        for &(x, r) in row {
+            score[(BORDER + k) * w + x] = r;
+        }
+    }
+    let mut out = Vec::new();
+    for (k, row) in rows.iter().enumerate() {
+        let y = BORDER + k;
+        for &(x, r) in row {
+            let mut is_max = true;
+            'n: for yy in y - 1..=y + 1 {
+                for xx in x - 1..=x + 1 {
+                    if (xx, yy) == (x, y) {
+                        continue;
+                    }
+                    let s = score[yy * w + xx];
+                    if s > r || (s == r && (yy, xx) < (y, x)) {
+                        is_max = false;
+                        break 'n;
+                    }
+                }
+            }
+            if is_max && r > 0.0 {
+                out.push((x, y, r));
+            }
+        }
+    }
+    out
+}
+
+/// Detects keypoints on a pyramid and computes their descriptors. Images smaller than the
+/// patch give no keypoints (not an error).
+pub fn detect_and_describe(
+    image: &GrayImage,
+    config: &KeypointConfig,
+) -> (Vec<Keypoint>, Vec<Descriptor>) {
+    let levels = config.levels.max(1);
+    let sf = config.scale_factor.max(1.01);
+    // Budget per level proportional to its area (geometric series).
+    let area_ratio = 1.0 / (sf * sf);
+    let total: f32 = (0..levels).map(|l| area_ratio.powi(l as i32)).sum();
+    let mut keypoints = Vec::new();
+    let mut descriptors = Vec::new();
+    let mut level_img = image.clone();
+    for l in 0..levels {
+        if l > 0 {
+            let scale = sf.powi(l as i32);
+            let w = (image.width() as f32 / scale).round() as usize;
+            let h = (image.height() as f32 / scale).round() as usize;
+            if w <= 2 * BORDER || h <= 2 * BORDER {
+                break;
+            }
+            level_img = image.resized(w, h);
+        }
+        let scale_x = image.width() as f32 / level_img.width().max(1) as f32;
+        let scale_y = image.height() as f32 / level_img.height().max(1) as f32;
+        let budget =
+            ((config.max_keypoints as f32) * area_ratio.powi(l as i32) / total).ceil() as usize;
+        let mut cands = level_candidates(&level_img, config.fast_threshold);
+        cands.sort_by(|a, b| b.2.total_cmp(&a.2));
+        // Spread: at most 2× the area share of the budget per cell, strongest first.
+        let cell = config.cell_px.max(8);
+        let (cw, ch) = (
+            level_img.width().div_ceil(cell),
+            level_img.height().div_ceil(cell),
+        );
+        let per_cell = ((2 * budget) as f32 / (cw * ch) as f32).ceil().max(1.0) as usize;
+        let mut counts = vec![0usize; cw * ch];
+        let mut chosen = Vec::with_capacity(budget);
+        for (x, y, r) in cands {
+            if chosen.len() >= budget {
+                break;
+            }
+            let c = (y / cell) * cw + x / cell;
+            if counts[c] < per_cell {
+                counts[c] += 1;
+                chosen.push((x, y, r));
+            }
+        }
+        let smooth = level_img.gaussian_blur(2.0);
+        let described: Vec<(Keypoint, Descriptor)> = chosen
+            .par_iter()
+            .map(|&(x, y, r)| {
+                let angle = orientation(&level_img, x, y);
+                let d = describe(&smooth, x, y, angle);
+                (
+                    Keypoint {
+                        x: (x as f32 + 0.5) * scale_x,
+                        y: (y as f32 + 0.5) * scale_y,
+                        level: l as u8,
+                        angle,
+                        response: r,
+                    },
+                    d,
+                )
+            })
+            .collect();
+        for (k, d) in described {
+            keypoints.push(k);
+            descriptors.push(d);
+        }
+    }
+    (keypoints, descriptors)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn arc_detection() {
+        assert!(has_arc9(0b1_1111_1111));
+        assert!(!has_arc9(0b1111_1111));
+        // Wraps around bit 15 → bit 0.
+        assert!(has_arc9(0b1111_0000_0000_0000 | 0b1_1111));
+        assert!(!has_arc9(0b0101_0101_0101_0101));
+    }
+
+    #[test]
+    fn pattern_stays_in_the_disk() {
+        for [p, q] in pattern() {
+            for (x, y) in [p, q] {
+                assert!(x * x + y * y <= (PATCH_RADIUS as f32).powi(2));
+            }
+        }
+    }
+
+    #[test]
+    fn corners_of_a_square_are_found() {
+        let (w, h) = (96, 96);
+        let mut data = vec![0.1f32; w * h];
+        for y in 30..66 {
+            for x in 30..66 {
+                data[y * w + x] = 0.9;
+            }
+        }
+        let img = GrayImage::from_vec(w, h, data).unwrap();
+        let cfg = KeypointConfig {
+            levels: 1,
+            ..KeypointConfig::default()
+        };
+        let (kps, descs) = detect_and_describe(&img, &cfg);
+        assert_eq!(kps.len(), descs.len());
+        for corner in [(30.0, 30.0), (66.0, 30.0), (30.0, 66.0), (66.0, 66.0)] {
+            let near = kps
+                .iter()
+                .any(|k| (k.x - corner.0).abs() <= 2.5 && (k.y - corner.1).abs() <= 2.5);
+            assert!(near, "no keypoint near {corner:?}: {kps:?}");
+        }
+        // Nothing along the straight edges' middles or the flat areas.
+        assert!(kps.len() <= 8, "{}", kps.len());
+    }
+
+    #[test]
+    fn tiny_and_empty_images_give_nothing() {
+        for (w, h) in [(0, 0), (1, 1), (20, 200), (34, 34)] {
+            let img = GrayImage::from_vec(w, h, vec![0.5; w * h]).unwrap();
+            let (k, d) = detect_and_describe(&img, &KeypointConfig::default());
+            assert!(k.is_empty() && d.is_empty());
+        }
+    }
+}

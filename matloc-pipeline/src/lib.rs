@@ -1,0 +1,24 @@
+//! The MatLoc-NeRF pipeline as a library.
+//!
+//! - [`manifest`]: the map directory — a versioned JSON manifest (config, scene frame, blocks,
+//!   stage records, file list with SHA-256 checksums) next to safetensors/JSON files, all
+//!   written atomically, validated on load.
+//! - [`confidence`]: calibrated P(correct | inliers, inlier ratio, matches) and the refusal
+//!   rule.
+//! - [`eval`]: per-method accuracy, refusal and timing summaries in the layout of the paper's
+//!   Tables 1 and 2, and their markdown rendering.
+//!
+//! The command-line tool (`matloc`) only parses arguments, draws progress and plots, and calls
+//! into this crate.
+
+pub mod confidence;
+pub mod eval;
+pub mod manifest;
+
+pub use eval::{
+    MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
+    timing_table,
+};
+pub use manifest::{
+    BlockEntry, FileEntry, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,
+};
