@@ -1,0 +1,25 @@
+//! 2D–3D matching between a query image's dense feature map and features rendered from a NeRF
+//! map (paper Section 3.1.1).
+//!
+//! - [`Matcher`] is the object-safe interface; [`MnnMatcher`] finds mutual nearest neighbours
+//!   of L2-normalised (optionally standardised) features under the dot-product similarity, with
+//!   an optional similarity threshold and ratio test.
+//! - The similarity matrix is never materialised: [`kernel::nn_tables_tiled`] keeps running
+//!   row and column maxima in registers and a per-thread column state, so the cost is the
+//!   `2·N·M·D` FLOP of the products. [`kernel::nn_tables_reference`] (plain loops, bit-identical)
+//!   and [`kernel::nn_tables_faer`] (faer GEMM) materialise it for tests and benchmarks.
+//! - The lower-level [`prepare_rows`] and [`mnn_prepared`] work on plain row-major buffers; the
+//!   feature selector uses them.
+
+pub mod error;
+pub mod kernel;
+pub mod mnn;
+pub mod types;
+
+pub use error::{MatchError, Side};
+pub use kernel::{NnTable, NnTables};
+pub use mnn::{
+    FeatureStats, Matcher, MnnConfig, MnnKernel, MnnMatcher, RawMatch, check_selection,
+    mnn_prepared, mutual_from_tables, prepare_rows, tables,
+};
+pub use types::{Match2d3d, QueryFeatures, QueryGrid, RenderedPoints};

@@ -1,0 +1,332 @@
+//! MNN matcher properties and kernel exactness.
+
+use matloc_core::FeatureMap;
+use matloc_match::kernel::{nn_tables_faer, nn_tables_reference, nn_tables_tiled};
+use matloc_match::*;
+use proptest::prelude::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn random_unit(rng: &mut ChaCha8Rng, n: usize, d: usize) -> Vec<f32> {
+    let mut v: Vec<f32> = (0..n * d).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+    for row in v.chunks_exact_mut(d) {
+        let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-6);
+        row.iter_mut().for_each(|x| *x /= norm);
+    }
+    v
+}
+
+fn tables_equal(a: &NnTables, b: &NnTables, second: bool) {
+    assert_eq!(a.rows.arg, b.rows.arg, "row argmax");
+    assert_eq!(a.cols.arg, b.cols.arg, "column argmax");
+    assert_eq!(a.rows.best, b.rows.best, "row best");
+    assert_eq!(a.cols.best, b.cols.best, "column best");
+    if second {
+        assert_eq!(a.rows.second, b.rows.second, "row second");
+        assert_eq!(a.cols.second, b.cols.second, "column second");
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    /// Sizes that are not multiples of the 4 × 16 tile or the 64-row chunk, D on both sides of
+    /// the const-generic range.
+    #[test]
+    fn tiled_equals_reference(n in 1usize..150, m in 1usize..150, d in 1usize..48, seed in any::<u64>()) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let a = random_unit(&mut rng, n, d);
+        let b = random_unit(&mut rng, m, d);
+        let r = nn_tables_reference(&a, n, &b, m, d);
+        tables_equal(&nn_tables_tiled(&a, n, &b, m, d, true), &r, true);
+        tables_equal(&nn_tables_tiled(&a, n, &b, m, d, false), &r, false);
+    }
+
+    /// Quantised features produce many exact ties: lowest index must win in both kernels.
+    #[test]
+    fn ties_break_to_lowest_index(n in 1usize..90, m in 1usize..90, d in 1usize..6, seed in any::<u64>()) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let a: Vec<f32> = (0..n * d).map(|_| rng.random_range(-1i32..=1) as f32).collect();
+        let b: Vec<f32> = (0..m * d).map(|_| rng.random_range(-1i32..=1) as f32).collect();
+        let r = nn_tables_reference(&a, n, &b, m, d);
+        tables_equal(&nn_tables_tiled(&a, n, &b, m, d, true), &r, true);
+        for i in 0..n {
+            let j = r.rows.arg[i] as usize;
+            for jj in 0..j {
+                let s: f32 = (0..d).map(|k| a[i * d + k] * b[jj * d + k]).sum();
+                prop_assert!(s < r.rows.best[i]);
+            }
+        }
+    }
+
+    /// Every returned pair is each other's argmax.
+    #[test]
+    fn mutuality(n in 1usize..120, m in 1usize..120, d in 1usize..20, seed in any::<u64>()) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let a = random_unit(&mut rng, n, d);
+        let b = random_unit(&mut rng, m, d);
+        let matches = mnn_prepared(&a, &b, d, &MnnConfig::default()).unwrap();
+        let r = nn_tables_reference(&a, n, &b, m, d);
+        let mut seen_q = vec![false; n];
+        let mut seen_m = vec![false; m];
+        for mt in &matches {
+            prop_assert_eq!(r.rows.arg[mt.query] as usize, mt.map);
+            prop_assert_eq!(r.cols.arg[mt.map] as usize, mt.query);
+            prop_assert!(!seen_q[mt.query] && !seen_m[mt.map]);
+            seen_q[mt.query] = true;
+            seen_m[mt.map] = true;
+        }
+        // and every mutual pair is returned
+        let mutual = (0..n).filter(|&i| r.cols.arg[r.rows.arg[i] as usize] as usize == i).count();
+        prop_assert_eq!(mutual, matches.len());
+    }
+
+    /// Permuting map points permutes the matches accordingly.
+    #[test]
+    fn permutation_invariance(n in 1usize..100, m in 1usize..100, d in 2usize..16, seed in any::<u64>()) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let a = random_unit(&mut rng, n, d);
+        let b = random_unit(&mut rng, m, d);
+        let mut perm: Vec<usize> = (0..m).collect();
+        for i in (1..m).rev() {
+            perm.swap(i, rng.random_range(0..=i));
+        }
+        // permuted[k] = b[perm[k]]
+        let bp: Vec<f32> = perm.iter().flat_map(|&j| b[j * d..(j + 1) * d].to_vec()).collect();
+        let cfg = MnnConfig::default();
+        let m1 = mnn_prepared(&a, &b, d, &cfg).unwrap();
+        let m2 = mnn_prepared(&a, &bp, d, &cfg).unwrap();
+        // Random unit vectors in d >= 2: no exact ties, so the match sets agree exactly (in d = 1
+        // every vector is +-1 and ties are the rule).
+        let mut mapped: Vec<(usize, usize)> = m2.iter().map(|x| (x.query, perm[x.map])).collect();
+        mapped.sort();
+        let orig: Vec<(usize, usize)> = m1.iter().map(|x| (x.query, x.map)).collect();
+        prop_assert_eq!(orig, mapped);
+    }
+
+    /// Identical sets of distinct random vectors match to the identity. (From d = 3 on: 200
+    /// random unit vectors in 2-D come closer than f32 can resolve in a dot product.)
+    #[test]
+    fn identical_features_identity(n in 1usize..200, d in 3usize..48, seed in any::<u64>()) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let a = random_unit(&mut rng, n, d);
+        let matches = mnn_prepared(&a, &a, d, &MnnConfig::default()).unwrap();
+        prop_assert_eq!(matches.len(), n);
+        for (i, mt) in matches.iter().enumerate() {
+            prop_assert_eq!((mt.query, mt.map), (i, i));
+        }
+    }
+
+    /// Threshold and ratio test keep exactly the mutual pairs that pass their definitions.
+    #[test]
+    fn threshold_and_ratio_semantics(n in 2usize..80, m in 2usize..80, d in 1usize..10, th in -0.5f32..0.9, ratio in 0.3f32..1.0, seed in any::<u64>()) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let a = random_unit(&mut rng, n, d);
+        let b = random_unit(&mut rng, m, d);
+        let r = nn_tables_reference(&a, n, &b, m, d);
+        let all = mnn_prepared(&a, &b, d, &MnnConfig::default()).unwrap();
+        let cfg = MnnConfig { min_similarity: Some(th), ratio: Some(ratio), ..Default::default() };
+        let got = mnn_prepared(&a, &b, d, &cfg).unwrap();
+        let dist = |s: f32| (2.0 - 2.0 * s).max(0.0).sqrt();
+        let expect: Vec<RawMatch> = all.into_iter().filter(|x| {
+            x.similarity >= th
+                && dist(x.similarity) <= ratio * dist(r.rows.second[x.query])
+                && dist(x.similarity) <= ratio * dist(r.cols.second[x.map])
+        }).collect();
+        prop_assert_eq!(got, expect);
+    }
+}
+
+#[test]
+fn faer_baseline_agrees_on_generic_data() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let (n, m, d) = (300, 257, 10);
+    let a = random_unit(&mut rng, n, d);
+    let b = random_unit(&mut rng, m, d);
+    let r = nn_tables_reference(&a, n, &b, m, d);
+    let f = nn_tables_faer(&a, n, &b, m, d);
+    // Different summation order: values agree to rounding, argmax almost everywhere.
+    let agree = (0..n).filter(|&i| r.rows.arg[i] == f.rows.arg[i]).count();
+    assert!(agree >= n - 2, "{agree}/{n}");
+    for i in 0..n {
+        assert!((r.rows.best[i] - f.rows.best[i]).abs() < 1e-5);
+    }
+}
+
+#[test]
+fn large_problem_tiled_equals_reference() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for &(n, m, d) in &[
+        (1203, 977, 5),
+        (517, 1031, 47),
+        (64, 4096, 3),
+        (999, 17, 33),
+    ] {
+        let a = random_unit(&mut rng, n, d);
+        let b = random_unit(&mut rng, m, d);
+        tables_equal(
+            &nn_tables_tiled(&a, n, &b, m, d, true),
+            &nn_tables_reference(&a, n, &b, m, d),
+            true,
+        );
+    }
+}
+
+fn query_from(w: usize, h: usize, d: usize, data: Vec<f32>, stride: f64) -> QueryFeatures {
+    QueryFeatures::new(FeatureMap::from_vec(w, h, d, data).unwrap(), stride)
+}
+
+#[test]
+fn matcher_maps_indices_pixels_and_points() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let (w, h, d) = (7, 5, 6);
+    let n = w * h;
+    let f = random_unit(&mut rng, n, d);
+    // Map = query features, reversed, with every third point invalid.
+    let mut feats = Vec::new();
+    let mut points = Vec::new();
+    let mut valid = Vec::new();
+    for k in 0..n {
+        let src = n - 1 - k;
+        feats.extend_from_slice(&f[src * d..(src + 1) * d]);
+        points.push([src as f64, 0.0, 1.0]);
+        valid.push(k % 3 != 0);
+    }
+    let map = RenderedPoints::new(d, feats, points, valid).unwrap();
+    let q = query_from(w, h, d, f, 4.0);
+    let matches = MnnMatcher::default()
+        .match_features(&q, &map, None)
+        .unwrap();
+    assert_eq!(matches.len(), map.valid_indices().len());
+    for mt in &matches {
+        assert_eq!(mt.map_index, n - 1 - mt.query_index);
+        assert!(map.valid()[mt.map_index]);
+        assert_eq!(mt.point_world[0] as usize, mt.query_index);
+        let (col, row) = (mt.query_index % w, mt.query_index / w);
+        assert_eq!(
+            mt.query_px,
+            [4.0 * (col as f64 + 0.5), 4.0 * (row as f64 + 0.5)]
+        );
+        assert!((mt.similarity - 1.0).abs() < 1e-5);
+    }
+    // Selecting dims keeps the identity on distinct data.
+    let sel = [0usize, 2, 5];
+    let m2 = MnnMatcher::default()
+        .match_features(&q, &map, Some(&sel))
+        .unwrap();
+    assert!(m2.iter().all(|mt| mt.map_index == n - 1 - mt.query_index));
+    let boxed: Box<dyn Matcher> = Box::new(MnnMatcher::default());
+    assert_eq!(boxed.match_features(&q, &map, None).unwrap(), matches);
+}
+
+#[test]
+fn standardisation_is_applied_to_both_sides() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (w, h, d) = (6, 6, 4);
+    // Every dim carries the signal (shared by both sides up to small noise), but dim 0 sits on
+    // an offset of 1e4: after plain L2 normalisation all vectors point along dim 0 and their
+    // differences fall below f32 resolution; standardisation removes the offset on both sides.
+    let mut fq = Vec::new();
+    let mut fm = Vec::new();
+    for _ in 0..w * h {
+        for k in 0..d {
+            let v = rng.random_range(-1.0f32..1.0) + if k == 0 { 1e4 } else { 0.0 };
+            fq.push(v + rng.random_range(-0.01f32..0.01));
+            fm.push(v + rng.random_range(-0.01f32..0.01));
+        }
+    }
+    let stats = FeatureStats::from_features(&fm, d);
+    let points = vec![[0.0; 3]; w * h];
+    let map = RenderedPoints::all_valid(d, fm, points).unwrap();
+    let q = query_from(w, h, d, fq, 1.0);
+    let correct = |cfg: MnnConfig| {
+        MnnMatcher::new(cfg)
+            .match_features(&q, &map, None)
+            .unwrap()
+            .iter()
+            .filter(|m| m.query_index == m.map_index)
+            .count()
+    };
+    let plain = correct(MnnConfig::default());
+    let std = correct(MnnConfig {
+        stats: Some(stats),
+        ..Default::default()
+    });
+    assert_eq!(std, w * h, "{std} correct with standardisation");
+    assert!(plain < std, "{plain} correct without, {std} with");
+}
+
+#[test]
+fn typed_errors() {
+    let q = query_from(2, 2, 3, vec![0.5; 12], 1.0);
+    let map4 = RenderedPoints::all_valid(4, vec![0.5; 8], vec![[0.0; 3]; 2]).unwrap();
+    let mm = MnnMatcher::default();
+    assert_eq!(
+        mm.match_features(&q, &map4, None),
+        Err(MatchError::DimensionMismatch { query: 3, map: 4 })
+    );
+    let empty_map = RenderedPoints::all_valid(3, vec![], vec![]).unwrap();
+    assert_eq!(
+        mm.match_features(&q, &empty_map, None),
+        Err(MatchError::Empty { side: Side::Map })
+    );
+    let invalid_map =
+        RenderedPoints::new(3, vec![0.5; 6], vec![[0.0; 3]; 2], vec![false; 2]).unwrap();
+    assert_eq!(
+        mm.match_features(&q, &invalid_map, None),
+        Err(MatchError::Empty { side: Side::Map })
+    );
+    let empty_q = query_from(0, 0, 3, vec![], 1.0);
+    let map3 = RenderedPoints::all_valid(3, vec![0.5; 6], vec![[0.0; 3]; 2]).unwrap();
+    assert_eq!(
+        mm.match_features(&empty_q, &map3, None),
+        Err(MatchError::Empty { side: Side::Query })
+    );
+    let mut qdata = vec![0.5; 12];
+    qdata[7] = f32::NAN;
+    let qnan = query_from(2, 2, 3, qdata, 1.0);
+    assert_eq!(
+        mm.match_features(&qnan, &map3, None),
+        Err(MatchError::NonFinite {
+            side: Side::Query,
+            index: 2,
+            dim: 1
+        })
+    );
+    let mut mdata = vec![0.5; 6];
+    mdata[5] = f32::INFINITY;
+    let mnan = RenderedPoints::all_valid(3, mdata, vec![[0.0; 3]; 2]).unwrap();
+    assert_eq!(
+        mm.match_features(&q, &mnan, None),
+        Err(MatchError::NonFinite {
+            side: Side::Map,
+            index: 1,
+            dim: 2
+        })
+    );
+    assert_eq!(
+        mm.match_features(&q, &map3, Some(&[0, 3])),
+        Err(MatchError::DimOutOfRange { dim: 3, dims: 3 })
+    );
+    assert!(matches!(
+        mm.match_features(&q, &map3, Some(&[])),
+        Err(MatchError::InvalidSelection(_))
+    ));
+    assert!(matches!(
+        mm.match_features(&q, &map3, Some(&[1, 1])),
+        Err(MatchError::InvalidSelection(_))
+    ));
+    assert!(RenderedPoints::all_valid(3, vec![0.5; 5], vec![[0.0; 3]; 2]).is_err());
+    let bad = MnnMatcher::new(MnnConfig {
+        ratio: Some(-1.0),
+        ..Default::default()
+    });
+    assert!(matches!(
+        bad.match_features(&q, &map3, None),
+        Err(MatchError::InvalidConfig(_))
+    ));
+    assert_eq!(
+        mnn_prepared(&[], &[1.0], 1, &MnnConfig::default()),
+        Err(MatchError::Empty { side: Side::Query })
+    );
+}
