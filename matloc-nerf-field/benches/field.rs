@@ -6,9 +6,10 @@ use std::hint::black_box;
 use std::time::Duration;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use matloc_nerf_field::{FeatureField, FieldConfig, HashGrid, NerfactoField, SceneBox};
+use matloc_nerf_field::{FeatureField, FieldConfig, NerfactoField, SceneBox};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 
 const N: usize = 4096 * 48;
 
@@ -76,23 +77,57 @@ fn bench(c: &mut Criterion) {
         b.iter(|| f.grid.backward(black_box(&unit), &d_enc, &mut grad))
     });
 
+    // MLPs run on chunks of 128 points (as inside the field), chunks in parallel.
+    const K: usize = 128;
     let mut h = vec![0f32; N * 64];
     let mut out = vec![0f32; N * 16];
     g.bench_function("geo_mlp_fwd", |b| {
         b.iter(|| {
-            f.geo[0].forward::<64>(black_box(&enc), &mut h, true);
-            f.geo[1].forward::<16>(&h, &mut out, false);
+            enc.par_chunks(K * 32)
+                .zip(h.par_chunks_mut(K * 64))
+                .zip(out.par_chunks_mut(K * 16))
+                .for_each(|((e, h), o)| {
+                    f.geo[0].forward::<64>(black_box(e), h, true);
+                    f.geo[1].forward::<16>(h, o, false);
+                })
         })
     });
     let dy: Vec<f32> = (0..N * 16).map(|i| ((i % 5) as f32 - 2.0) * 1e-3).collect();
-    let mut dh = vec![0f32; N * 64];
-    let mut gr1 = f.geo[1].zero_grad();
-    let mut gr0 = f.geo[0].zero_grad();
-    let mut dx = vec![0f32; N * 32];
-    g.bench_function("geo_mlp_bwd_serial", |b| {
+    let wt = [f.geo[0].transposed(), f.geo[1].transposed()];
+    g.bench_function("geo_mlp_bwd", |b| {
         b.iter(|| {
-            f.geo[1].backward(&h, black_box(&dy), Some(&mut dh), &mut gr1);
-            f.geo[0].backward(&enc, &dh, Some(&mut dx), &mut gr0);
+            h.par_chunks(K * 64)
+                .zip(dy.par_chunks(K * 16))
+                .zip(enc.par_chunks(K * 32))
+                .fold(
+                    || {
+                        (
+                            f.geo[0].zero_grad(),
+                            f.geo[1].zero_grad(),
+                            vec![0f32; K * 64],
+                            vec![0f32; K * 32],
+                        )
+                    },
+                    |(mut g0, mut g1, mut dh, mut dx), ((h, dy), e)| {
+                        let m = dy.len() / 16;
+                        f.geo[1].backward_with(
+                            h,
+                            black_box(dy),
+                            Some(&mut dh[..m * 64]),
+                            &wt[1],
+                            &mut g1,
+                        );
+                        f.geo[0].backward_with(
+                            e,
+                            &dh[..m * 64],
+                            Some(&mut dx[..m * 32]),
+                            &wt[0],
+                            &mut g0,
+                        );
+                        (g0, g1, dh, dx)
+                    },
+                )
+                .count()
         })
     });
 

@@ -87,6 +87,26 @@ impl Adam {
         self.step
     }
 
+    /// Moment estimates `(m, v)` per group, for checkpoints.
+    pub fn moments(&self) -> (&[Vec<f32>], &[Vec<f32>]) {
+        (&self.m, &self.v)
+    }
+
+    /// Restores state saved from [`Adam::steps`] and [`Adam::moments`]; `None` if the group
+    /// count or any group's size differs from this optimiser's.
+    pub fn restore(&mut self, steps: u64, m: Vec<Vec<f32>>, v: Vec<Vec<f32>>) -> Option<()> {
+        let same = |a: &[Vec<f32>], b: &[Vec<f32>]| {
+            a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.len() == y.len())
+        };
+        if !same(&m, &self.m) || !same(&v, &self.v) {
+            return None;
+        }
+        self.step = steps;
+        self.m = m;
+        self.v = v;
+        Some(())
+    }
+
     /// One update with learning rate `lr`; every gradient is zeroed as it is consumed, which
     /// saves a separate pass over the (large) table gradient.
     ///

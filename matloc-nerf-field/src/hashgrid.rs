@@ -165,8 +165,8 @@ impl HashGrid {
         let mut i0 = [0u32; 3];
         let mut fr = [0f32; 3];
         for a in 0..3 {
-            // max/min (not clamp) so that NaN maps to 0 instead of propagating into indices.
-            let x = p[a].max(0.0).min(1.0) * s;
+            // NaN fails the comparison and maps to 0 instead of propagating into indices.
+            let x = if p[a] >= 0.0 { p[a].min(1.0) } else { 0.0 } * s;
             let fl = x.floor().min(s - 1.0).max(0.0);
             i0[a] = fl as u32;
             fr[a] = x - fl;

@@ -155,6 +155,29 @@ impl NerfactoField {
             path: weights_path.to_path_buf(),
             message: e.to_string(),
         })?;
+        Self::from_safetensors(config, &st, weights_path)
+    }
+
+    /// Every weight tensor with its name and shape (as [`NerfactoField::tensor_shapes`]), for
+    /// containers that store more than the field (a model with its occupancy grid).
+    pub fn named_tensors(&self) -> Vec<(String, Vec<usize>, &[f32])> {
+        Self::tensor_shapes(self.config())
+            .into_iter()
+            .zip(self.tensors())
+            .map(|((name, shape), (_, data))| (name, shape, data))
+            .collect()
+    }
+
+    /// Builds the field for `config` from the tensors of a parsed safetensors container
+    /// (`path` only labels errors); extra tensors are ignored, missing or misshapen ones are
+    /// an error.
+    pub fn from_safetensors(
+        config: FieldConfig,
+        st: &SafeTensors<'_>,
+        path: &Path,
+    ) -> Result<Self, FieldError> {
+        config.validate()?;
+        let weights_path = path;
         let mut vals: Vec<Vec<f32>> = Vec::new();
         for (name, shape) in Self::tensor_shapes(&config) {
             let t = st.tensor(&name).map_err(|_| FieldError::MissingTensor {
@@ -196,11 +219,11 @@ impl NerfactoField {
             config.base_resolution,
             config.max_resolution,
         );
-        let c2 = layers.pop().unwrap_or_else(|| Linear::empty());
-        let c1 = layers.pop().unwrap_or_else(|| Linear::empty());
-        let c0 = layers.pop().unwrap_or_else(|| Linear::empty());
-        let g1 = layers.pop().unwrap_or_else(|| Linear::empty());
-        let g0 = layers.pop().unwrap_or_else(|| Linear::empty());
+        let c2 = layers.pop().unwrap_or_else(Linear::empty);
+        let c1 = layers.pop().unwrap_or_else(Linear::empty);
+        let c0 = layers.pop().unwrap_or_else(Linear::empty);
+        let g1 = layers.pop().unwrap_or_else(Linear::empty);
+        let g0 = layers.pop().unwrap_or_else(Linear::empty);
         Ok(Self::from_parts(
             config,
             HashGrid::from_parts(levels, table),

@@ -44,6 +44,9 @@ impl Default for RenderOptions {
     }
 }
 
+/// One live ray's work in a round: its index in the tile, its new intervals, the next step.
+type RoundItem = (usize, Vec<(f32, f32)>, usize);
+
 struct RayState {
     step: usize,
     trans: f32,
@@ -110,7 +113,7 @@ pub fn render_rays(
             .collect();
         loop {
             // March every live ray to its next `samples_per_round` occupied samples.
-            let batch: Vec<(usize, Vec<(f32, f32)>, usize)> = state
+            let batch: Vec<RoundItem> = state
                 .par_iter()
                 .enumerate()
                 .filter(|(_, s)| !s.done)

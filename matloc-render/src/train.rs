@@ -90,6 +90,9 @@ impl Default for TrainConfig {
     }
 }
 
+/// Saved Adam state: step count, first and second moments per parameter group.
+pub type OptimizerState = (u64, Vec<Vec<f32>>, Vec<Vec<f32>>);
+
 /// Numbers from one training step.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct StepStats {
@@ -174,6 +177,40 @@ impl Trainer {
         self.step
     }
 
+    /// The optimiser (its moments go into checkpoints).
+    pub fn optimizer(&self) -> &Adam {
+        &self.adam
+    }
+
+    /// Continues from a checkpoint: step counter, background, occupancy grid and, when the
+    /// checkpoint has it, optimiser state (`None` restarts Adam's moments, which costs a few
+    /// noisy steps but no correctness). The ray/jitter RNG is reseeded from
+    /// `(config.seed, step)`, so a resumed run is reproducible but not bit-identical to an
+    /// uninterrupted one.
+    pub fn resume(
+        &mut self,
+        step: u64,
+        background: [f32; 3],
+        grid: Option<OccupancyGrid>,
+        optimizer: Option<OptimizerState>,
+    ) -> Result<(), RenderError> {
+        if let Some((t, m, v)) = optimizer {
+            self.adam
+                .restore(t, m, v)
+                .ok_or_else(|| RenderError::InvalidConfig {
+                    field: "optimizer state",
+                    reason: "group sizes differ from the field's parameters".into(),
+                })?;
+        }
+        self.step = step;
+        self.background = background;
+        if grid.is_some() && self.grid.is_some() {
+            self.grid = grid;
+        }
+        self.rng = ChaCha8Rng::seed_from_u64(self.config.seed ^ step.wrapping_mul(0x9E37_79B9));
+        Ok(())
+    }
+
     /// Current background colour.
     pub fn background(&self) -> [f32; 3] {
         self.background
@@ -201,7 +238,8 @@ impl Trainer {
         }
         if let (Some(grid), true) = (
             self.grid.as_mut(),
-            self.step % self.config.occupancy_update_every.max(1) == 0,
+            self.step
+                .is_multiple_of(self.config.occupancy_update_every.max(1)),
         ) {
             grid.update(&self.field, &mut self.rng)?;
         }
