@@ -3,6 +3,8 @@
 //! - [`manifest`]: the map directory — a versioned JSON manifest (config, scene frame, blocks,
 //!   stage records, file list with SHA-256 checksums) next to safetensors/JSON files, all
 //!   written atomically, validated on load.
+//! - [`baselines`]: rendered-RGB + keypoints, iNeRF and curriculum iNeRF from the same coarse
+//!   poses and map as MatLoc.
 //! - [`confidence`]: calibrated P(correct | inliers, inlier ratio, matches) and the refusal
 //!   rule.
 //! - [`eval`]: per-method accuracy, refusal and timing summaries in the layout of the paper's
@@ -11,10 +13,13 @@
 //! The command-line tool (`matloc`) only parses arguments, draws progress and plots, and calls
 //! into this crate.
 
+pub mod baselines;
 pub mod confidence;
+mod error;
 pub mod eval;
 pub mod manifest;
 
+pub use error::PipelineError;
 pub use eval::{
     MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
     timing_table,
