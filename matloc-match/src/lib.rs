@@ -1,5 +1,5 @@
 //! 2D–3D matching between a query image's dense feature map and features rendered from a NeRF
-//! map (paper Section 3.1.1).
+//! map (paper Section 3.1).
 //!
 //! - [`Matcher`] is the object-safe interface; [`MnnMatcher`] finds mutual nearest neighbours
 //!   of L2-normalised (optionally standardised) features under the dot-product similarity, with
@@ -10,10 +10,17 @@
 //!   and [`kernel::nn_tables_faer`] (faer GEMM) materialise it for tests and benchmarks.
 //! - The lower-level [`prepare_rows`] and [`mnn_prepared`] work on plain row-major buffers; the
 //!   feature selector uses them.
+//! - [`gt`] generates ground-truth 2D–3D pairs from perturbed training poses (paper 3.1.2)
+//!   through any [`gt::ViewRenderer`]; [`synth_view`] is one backed by the synthetic world's
+//!   exact geometry and an analytic feature field.
+//! - [`localize`] renders the map at a coarse pose, lifts it to 3D, matches and solves PnP.
 
 pub mod error;
+pub mod gt;
 pub mod kernel;
+pub mod localize;
 pub mod mnn;
+pub mod synth_view;
 pub mod types;
 
 pub use error::{MatchError, Side};
