@@ -2,6 +2,8 @@
 //! and prints reports; all work happens in the library crates.
 
 mod dataset_cmd;
+mod partition_cmd;
+mod plot;
 mod progress;
 mod synth_cmd;
 
@@ -43,6 +45,8 @@ enum Command {
         #[command(subcommand)]
         command: DatasetCommand,
     },
+    /// Split the scene into sub-NeRF blocks (pose-aware or Mega-NeRF grid) and plot them.
+    Partition(partition_cmd::PartitionArgs),
 }
 
 #[derive(Subcommand)]
@@ -64,6 +68,7 @@ fn main() -> ExitCode {
         Command::Dataset {
             command: DatasetCommand::Info { path, json },
         } => dataset_cmd::info(&path, json),
+        Command::Partition(args) => partition_cmd::run(&args, cli.quiet),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,0 +1,360 @@
+//! `matloc partition`: split a dataset's scene into sub-NeRF blocks (pose-aware or Mega-NeRF
+//! grid), write the partition JSON and a top-down plot, and report Num_NeRF(P).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use matloc_data::Split;
+use matloc_partition::{
+    GridConfig, GridPartitioner, Method, Partition, Partitioner, PoseAwareConfig,
+    PoseAwarePartitioner, PoseSamples, SampleConfig, assign_pose, coverage, mean_num_nerf,
+    samples_from_dataset, write_partition,
+};
+
+use crate::plot::{self, Canvas};
+use crate::progress;
+
+/// Partition strategy on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum MethodArg {
+    /// Cluster poses by voxel-occupancy overlap (one sub-NeRF per pose).
+    PoseAware,
+    /// Mega-NeRF ground grid with overlapping borders.
+    Grid,
+}
+
+/// Arguments of `matloc partition`.
+#[derive(Args, Debug)]
+pub struct PartitionArgs {
+    /// Dataset directory (needs depth maps, e.g. from `matloc synth`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Partition strategy.
+    #[arg(long, value_enum, default_value = "pose-aware")]
+    method: MethodArg,
+    /// Training poses per block; also sets the grid size when --grid is not given.
+    #[arg(long, default_value_t = 150)]
+    target_size: usize,
+    /// Grid centroids as KXxKY, e.g. 2x2 (grid method; default: as many blocks as pose-aware).
+    #[arg(long)]
+    grid: Option<String>,
+    /// Overlap factor of the grid method.
+    #[arg(long, default_value_t = 1.15)]
+    overlap: f64,
+    /// Voxel edge in metres.
+    #[arg(long, default_value_t = 3.0)]
+    voxel_size: f64,
+    /// Use every Nth pixel as a ray.
+    #[arg(long, default_value_t = 8)]
+    stride: u32,
+    /// Sample points per ray before the surface.
+    #[arg(long, default_value_t = 8)]
+    points_per_ray: usize,
+    /// Use count-weighted Jaccard distances.
+    #[arg(long)]
+    weighted: bool,
+    /// Clustering seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output JSON (default: DATA/partition-METHOD.json).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Output plot (default: the JSON path with .png).
+    #[arg(long)]
+    plot: Option<PathBuf>,
+}
+
+fn parse_grid(s: &str) -> Result<(usize, usize)> {
+    let lower = s.to_ascii_lowercase();
+    let (a, b) = lower
+        .split_once('x')
+        .with_context(|| format!("--grid expects KXxKY such as 2x2, got `{s}`"))?;
+    let kx: usize = a
+        .trim()
+        .parse()
+        .with_context(|| format!("bad --grid `{s}`"))?;
+    let ky: usize = b
+        .trim()
+        .parse()
+        .with_context(|| format!("bad --grid `{s}`"))?;
+    if kx == 0 || ky == 0 || kx * ky > 10_000 {
+        bail!("--grid needs 1..=10000 centroids, got {kx}x{ky}");
+    }
+    Ok((kx, ky))
+}
+
+/// A near-square grid of about `k` cells for a scene of extent `ex × ey`.
+fn grid_for(k: usize, ex: f64, ey: f64) -> (usize, usize) {
+    let k = k.max(1);
+    let ky = ((k as f64 * ey / ex.max(1e-9)).sqrt().round() as usize).clamp(1, k);
+    (k.div_ceil(ky), ky)
+}
+
+/// Runs the command.
+pub fn run(args: &PartitionArgs, quiet: bool) -> Result<()> {
+    let start = Instant::now();
+    let dataset = matloc_data::read_dataset(&args.data)
+        .with_context(|| format!("reading dataset {}", args.data.display()))?;
+    let train_idx = dataset.split_indices(Split::Train);
+    let test_idx = dataset.split_indices(Split::Test);
+    if train_idx.is_empty() {
+        bail!("{} has no training frames", args.data.display());
+    }
+    let sample_cfg = SampleConfig {
+        pixel_stride: args.stride,
+        points_per_ray: args.points_per_ray,
+        ..SampleConfig::default()
+    };
+    let t0 = Instant::now();
+    let bar = progress::bar((train_idx.len() + test_idx.len()) as u64, "sampling", quiet);
+    let train = samples_from_dataset(&dataset, &train_idx, &sample_cfg, &|| bar.inc(1))?;
+    let test = samples_from_dataset(&dataset, &test_idx, &sample_cfg, &|| bar.inc(1))?;
+    bar.finish_and_clear();
+    let sample_secs = t0.elapsed().as_secs_f64();
+    let n_points: usize = train.iter().map(|p| p.points.len()).sum();
+
+    let pose_aware = PoseAwarePartitioner {
+        config: PoseAwareConfig {
+            target_size: args.target_size,
+            voxel_size: args.voxel_size,
+            weighted: args.weighted,
+            seed: args.seed,
+            ..PoseAwareConfig::default()
+        },
+    };
+    let partitioner: Box<dyn Partitioner> = match args.method {
+        MethodArg::PoseAware => Box::new(pose_aware),
+        MethodArg::Grid => {
+            let (kx, ky) = match &args.grid {
+                Some(g) => parse_grid(g)?,
+                None => {
+                    let k = pose_aware.num_blocks(train.len());
+                    let b = matloc_partition::Aabb::of_points(
+                        train.iter().flat_map(|p| p.points.iter()),
+                    )
+                    .context("no sample points")?;
+                    grid_for(k, b.max[0] - b.min[0], b.max[1] - b.min[1])
+                }
+            };
+            Box::new(GridPartitioner {
+                config: GridConfig {
+                    kx,
+                    ky,
+                    overlap: args.overlap,
+                    voxel_size: args.voxel_size,
+                    ..GridConfig::default()
+                },
+            })
+        }
+    };
+    let spinner = progress::bar(1, "partition", quiet);
+    let t1 = Instant::now();
+    let partition = partitioner.partition(&train)?;
+    let part_secs = t1.elapsed().as_secs_f64();
+    spinner.finish_and_clear();
+
+    let t2 = Instant::now();
+    let nn_train = mean_num_nerf(&partition, &train);
+    let nn_test = mean_num_nerf(&partition, &test);
+    let cov_test = if test.is_empty() {
+        f64::NAN
+    } else {
+        test.iter().map(|p| coverage(&partition, p)).sum::<f64>() / test.len() as f64
+    };
+    let eval_secs = t2.elapsed().as_secs_f64();
+
+    let out = args.out.clone().unwrap_or_else(|| {
+        let name = match args.method {
+            MethodArg::PoseAware => "partition-pose-aware.json",
+            MethodArg::Grid => "partition-grid.json",
+        };
+        dataset.root.join(name)
+    });
+    let plot_path = args
+        .plot
+        .clone()
+        .unwrap_or_else(|| out.with_extension("png"));
+    write_partition(&out, &partition)?;
+    let title = format!(
+        "{} partition: {} blocks, {} train poses, mean Num_NeRF train {:.2} test {:.2}",
+        partitioner.name(),
+        partition.blocks.len(),
+        train.len(),
+        nn_train,
+        nn_test
+    );
+    draw(&partition, &train, &test, &title, &plot_path)?;
+
+    println!(
+        "{} partition of {} ({} train poses, {} test poses, {} sample points, voxel {} m)",
+        partitioner.name(),
+        dataset.root.display(),
+        train.len(),
+        test.len(),
+        n_points,
+        partition.voxel_size
+    );
+    println!(
+        "{:>5} {:>6} {:>28} {:>22} {:>14} {:>14}",
+        "block",
+        "poses",
+        "centroid x, y, z (m)",
+        "box size x, y, z (m)",
+        "sampling m3",
+        "occupied m3"
+    );
+    for b in &partition.blocks {
+        let s = [0, 1, 2].map(|a| b.bounds.max[a] - b.bounds.min[a]);
+        println!(
+            "{:>5} {:>6} {:>28} {:>22} {:>14.0} {:>14.0}",
+            b.id,
+            b.pose_ids.len(),
+            format!(
+                "{:.1}, {:.1}, {:.1}",
+                b.centroid[0], b.centroid[1], b.centroid[2]
+            ),
+            format!("{:.0}, {:.0}, {:.0}", s[0], s[1], s[2]),
+            b.sampling_volume_m3,
+            b.occupied_volume_m3
+        );
+    }
+    let vols: Vec<f64> = partition
+        .blocks
+        .iter()
+        .map(|b| b.sampling_volume_m3)
+        .collect();
+    println!(
+        "mean sampling volume per block: {:.0} m3; scene box: {:.0} m3",
+        vols.iter().sum::<f64>() / vols.len().max(1) as f64,
+        partition.scene_bounds.volume()
+    );
+    println!(
+        "mean Num_NeRF(P): train {nn_train:.3}, test {nn_test:.3}; test samples inside their block box: {:.1} %",
+        100.0 * cov_test
+    );
+    println!(
+        "time: sampling {sample_secs:.2} s, partition {part_secs:.2} s, Num_NeRF {eval_secs:.2} s, total {:.2} s",
+        start.elapsed().as_secs_f64()
+    );
+    println!("wrote {} and {}", out.display(), plot_path.display());
+    Ok(())
+}
+
+/// The top-down plot: sample points and block boxes coloured per block, camera positions with
+/// their viewing direction, and a legend.
+fn draw(
+    partition: &Partition,
+    train: &[PoseSamples],
+    test: &[PoseSamples],
+    title: &str,
+    path: &Path,
+) -> Result<()> {
+    let (w, h) = (1100u32, 820u32);
+    let mut c = Canvas::new(w, h, plot::WHITE);
+    let area = [20.0, 40.0, 780.0, 740.0];
+    let sb = &partition.scene_bounds;
+    c.set_view(area, [sb.min[0], sb.min[1]], [sb.max[0], sb.max[1]], true);
+    c.text_px(20.0, 12.0, title, plot::BLACK, 2);
+
+    // Sample points: at most ~300k, lightly blended so density shows.
+    let total: usize = train.iter().map(|p| p.points.len()).sum();
+    let step = total.div_ceil(300_000).max(1);
+    for p in train {
+        let block = match partition.method {
+            Method::PoseAware => assign_pose(partition, p),
+            Method::Grid => None,
+        };
+        for q in p.points.iter().step_by(step) {
+            let b = block.or_else(|| nearest_block(partition, q.x, q.y));
+            if let Some(b) = b {
+                c.point(q.x, q.y, 0.0, plot::palette(b), 0.25);
+            }
+        }
+    }
+    for b in &partition.blocks {
+        let col = plot::palette(b.id);
+        c.rect(
+            [b.bounds.min[0], b.bounds.min[1]],
+            [b.bounds.max[0], b.bounds.max[1]],
+            col,
+            2.0,
+        );
+    }
+    let arrow = 0.04 * (sb.max[0] - sb.min[0]).max(sb.max[1] - sb.min[1]);
+    let cameras = |c: &mut Canvas, poses: &[PoseSamples], is_test: bool| {
+        for p in poses {
+            let o = p.center();
+            let d = p.viewing_direction();
+            let col = assign_pose(partition, p).map_or(plot::GREY, plot::palette);
+            c.line(
+                [o.x, o.y],
+                [o.x + d.x * arrow, o.y + d.y * arrow],
+                plot::BLACK,
+                1.0,
+            );
+            if is_test {
+                c.point(o.x, o.y, 5.0, plot::BLACK, 1.0);
+                c.point(o.x, o.y, 3.0, col, 1.0);
+            } else {
+                c.point(o.x, o.y, 3.5, col, 1.0);
+            }
+        }
+    };
+    cameras(&mut c, train, false);
+    cameras(&mut c, test, true);
+    c.frame(plot::BLACK, "m");
+
+    // Legend.
+    let lx = 820.0;
+    let mut ly = 50.0;
+    c.text_px(lx, ly, "block  poses  box m3", plot::BLACK, 1);
+    ly += 14.0;
+    for b in partition.blocks.iter().take(40) {
+        c.fill_rect_px(lx, ly, 10.0, 8.0, plot::palette(b.id), 1.0);
+        let line = format!(
+            "{:>3} {:>6}  {:.2e}",
+            b.id,
+            b.pose_ids.len(),
+            b.sampling_volume_m3
+        );
+        c.text_px(lx + 16.0, ly, &line, plot::BLACK, 1);
+        ly += 12.0;
+    }
+    if partition.blocks.len() > 40 {
+        c.text_px(lx, ly, "...", plot::BLACK, 1);
+        ly += 12.0;
+    }
+    ly += 10.0;
+    c.disc_px(lx + 5.0, ly + 4.0, 3.5, plot::palette(0), 1.0);
+    c.text_px(lx + 16.0, ly, "train camera", plot::BLACK, 1);
+    ly += 14.0;
+    c.disc_px(lx + 5.0, ly + 4.0, 5.0, plot::BLACK, 1.0);
+    c.disc_px(lx + 5.0, ly + 4.0, 3.0, plot::palette(0), 1.0);
+    c.text_px(lx + 16.0, ly, "test camera", plot::BLACK, 1);
+    ly += 14.0;
+    c.line_px((lx, ly + 4.0), (lx + 10.0, ly + 4.0), plot::BLACK, 1.0);
+    c.text_px(lx + 16.0, ly, "view direction", plot::BLACK, 1);
+    ly += 14.0;
+    c.text_px(lx, ly, "dots: sample points", plot::BLACK, 1);
+    ly += 12.0;
+    c.text_px(lx, ly, "boxes: sub-NeRF bounds", plot::BLACK, 1);
+    ly += 12.0;
+    c.text_px(lx, ly, "colour = block (top-down)", plot::BLACK, 1);
+    c.save_png(path)
+}
+
+fn nearest_block(partition: &Partition, x: f64, y: f64) -> Option<usize> {
+    partition
+        .blocks
+        .iter()
+        .map(|b| {
+            (
+                b.id,
+                (x - b.centroid[0]).powi(2) + (y - b.centroid[1]).powi(2),
+            )
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i)
+}
