@@ -12,14 +12,19 @@
 //!   feature selector uses them.
 //! - [`gt`] generates ground-truth 2D–3D pairs from perturbed training poses (paper 3.1.2)
 //!   through any [`gt::ViewRenderer`]; [`synth_view`] is one backed by the synthetic world's
-//!   exact geometry and an analytic feature field.
+//!   exact geometry and an analytic feature field, [`nerf_view`] one over a trained NeRF.
+//! - [`encoder`] (feature `encoder`, on by default) is the burn CNN mapping RGB to the NeRF
+//!   feature domain at stride 4.
 //! - [`localize`] renders the map at a coarse pose, lifts it to 3D, matches and solves PnP.
 
+#[cfg(feature = "encoder")]
+pub mod encoder;
 pub mod error;
 pub mod gt;
 pub mod kernel;
 pub mod localize;
 pub mod mnn;
+pub mod nerf_view;
 pub mod synth_view;
 pub mod types;
 
