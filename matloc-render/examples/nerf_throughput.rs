@@ -50,13 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "occupancy" => {}
         other => return Err(format!("unknown sampler {other}").into()),
     }
-    let images = TrainImages::load(
-        &dataset,
-        matloc_data::Split::Train,
-        1,
-        cfg.near_m,
-        cfg.far_m,
-    )?;
+    let images = TrainImages::load(&dataset, matloc_data::Split::Train, 1, &cfg)?;
     let mut trainer = Trainer::new(NerfactoField::new(cfg.field.clone())?, cfg.train.clone())?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batch = cfg.train.batch_rays;

@@ -46,18 +46,19 @@ pub struct TrainImages {
     offsets: Vec<usize>,
     near_m: f32,
     far_m: f32,
+    clip: Option<([f32; 3], [f32; 3])>,
 }
 
 impl TrainImages {
     /// Loads the images of `split` (their order gives the appearance index), downscaled by an
-    /// integer factor (1 = full size).
+    /// integer factor (1 = full size); rays get `config`'s range and box clipping.
     pub fn load(
         dataset: &Dataset,
         split: Split,
         downscale: u32,
-        near_m: f32,
-        far_m: f32,
+        config: &ModelConfig,
     ) -> Result<Self, RenderError> {
+        let (near_m, far_m, clip) = (config.near_m, config.far_m, config.clip_box());
         let frames: Vec<_> = dataset.split(split).collect();
         let images = frames
             .par_iter()
@@ -87,6 +88,7 @@ impl TrainImages {
             offsets,
             near_m,
             far_m,
+            clip,
         })
     }
 
@@ -146,6 +148,9 @@ impl TrainImages {
                 v.push(a);
             }
             rgb.extend(c);
+        }
+        if let Some((lo, hi)) = self.clip {
+            rays.clip_to_box(lo, hi);
         }
         (rays, rgb)
     }
@@ -336,13 +341,7 @@ pub fn train_on_dataset(
     mut progress: impl FnMut(&FitProgress),
 ) -> Result<NerfModel, RenderError> {
     config.validate()?;
-    let data = TrainImages::load(
-        dataset,
-        Split::Train,
-        opts.downscale,
-        config.near_m,
-        config.far_m,
-    )?;
+    let data = TrainImages::load(dataset, Split::Train, opts.downscale, config)?;
     if data.num_images() != config.field.num_images {
         return Err(RenderError::InvalidConfig {
             field: "field.num_images",

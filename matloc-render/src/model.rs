@@ -60,6 +60,11 @@ pub struct ModelConfig {
     /// End of every ray (metres); beyond the scene box the spacing is in disparity, so a far
     /// value covers the contracted background cheaply.
     pub far_m: f32,
+    /// When set, every ray's range is clipped to the scene box grown by this fraction of its
+    /// extent on each side ([`crate::RayBatch::clip_to_box`]): right for scenes whose content
+    /// lies in the box (aerial surveys), where the air above the box and the far field would
+    /// otherwise take most samples. `None` samples `[near_m, far_m]` (unbounded scenes).
+    pub clip_to_box_margin: Option<f32>,
 }
 
 impl Default for ModelConfig {
@@ -70,6 +75,7 @@ impl Default for ModelConfig {
             render: ViewConfig::default(),
             near_m: 0.05,
             far_m: 1000.0,
+            clip_to_box_margin: None,
         }
     }
 }
@@ -81,7 +87,8 @@ impl ModelConfig {
     ///
     /// The spacing switches from linear to disparity at about the camera-to-far-side distance
     /// (`view_distance_m + ` half the box diagonal), the far plane is 20 scene diagonals away,
-    /// and inference marches at twice the training step density.
+    /// rays are clipped to the box grown by 2 % (the scene is assumed to lie inside it), the
+    /// background colour is learned, and inference marches at twice the training step density.
     pub fn for_scene(
         min: [f32; 3],
         max: [f32; 3],
@@ -110,7 +117,24 @@ impl ModelConfig {
             steps: 512,
             max_samples: 1024,
         };
+        cfg.render.march.steps = 256;
+        cfg.train.occupancy_warmup_steps = 64;
+        cfg.train.occupancy.density_threshold = 4.0;
+        cfg.train.distortion_weight = 0.01;
+        cfg.clip_to_box_margin = Some(0.02);
+        cfg.train.background = Background::Learned([0.5; 3]);
         cfg
+    }
+
+    /// The box rays are clipped to (`clip_to_box_margin` applied), if clipping is on.
+    pub fn clip_box(&self) -> Option<([f32; 3], [f32; 3])> {
+        let m = self.clip_to_box_margin?;
+        let b = &self.field.scene_box;
+        let pad: [f32; 3] = [0, 1, 2].map(|a| m * (b.max[a] - b.min[a]));
+        Some((
+            [0, 1, 2].map(|a| b.min[a] - pad[a]),
+            [0, 1, 2].map(|a| b.max[a] + pad[a]),
+        ))
     }
 
     /// Checks the parts that the field, trainer and renderer would otherwise reject later.

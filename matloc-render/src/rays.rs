@@ -114,6 +114,36 @@ impl RayBatch {
         }
     }
 
+    /// Narrows every ray's `[near, far]` to where it crosses the box `[min, max]` (slab
+    /// test). Rays that miss the box, or cross it only outside `[near, far]`, keep their
+    /// range. Used for scenes whose content lies inside the box (aerial surveys): samples are
+    /// then spent on the scene, not on the air above it or the contracted far field.
+    pub fn clip_to_box(&mut self, min: [f32; 3], max: [f32; 3]) {
+        for i in 0..self.len() {
+            let (o, d) = (self.origins[i], self.directions[i]);
+            let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
+            for a in 0..3 {
+                if d[a].abs() < 1e-12 {
+                    if o[a] < min[a] || o[a] > max[a] {
+                        t0 = f32::INFINITY;
+                    }
+                    continue;
+                }
+                let inv = 1.0 / d[a];
+                let (u, v) = ((min[a] - o[a]) * inv, (max[a] - o[a]) * inv);
+                t0 = t0.max(u.min(v));
+                t1 = t1.min(u.max(v));
+            }
+            let near = self.near[i].max(t0);
+            let far = self.far[i].min(t1);
+            // A sliver shorter than a millimetre is not worth sampling; keep the full range.
+            if far > near + 1e-3 {
+                self.near[i] = near;
+                self.far[i] = far;
+            }
+        }
+    }
+
     /// Point at distance `t` along ray `i`.
     #[inline]
     pub fn at(&self, i: usize, t: f32) -> [f32; 3] {

@@ -59,6 +59,9 @@ pub struct TrainConfig {
     pub occupancy: OccupancyConfig,
     /// Steps between occupancy-grid updates.
     pub occupancy_update_every: u64,
+    /// Steps before the first occupancy-grid update (the grid stays all-occupied until
+    /// then), so surfaces form before empty-space skipping can prune them.
+    pub occupancy_warmup_steps: u64,
     /// Background model.
     pub background: Background,
     /// Weight of the distortion loss (mip-NeRF 360), computed in the sampler's normalised
@@ -83,6 +86,7 @@ impl Default for TrainConfig {
             },
             occupancy: OccupancyConfig::default(),
             occupancy_update_every: 16,
+            occupancy_warmup_steps: 0,
             background: Background::Fixed([0.0; 3]),
             distortion_weight: 0.002,
             seed: 0,
@@ -238,8 +242,10 @@ impl Trainer {
         }
         if let (Some(grid), true) = (
             self.grid.as_mut(),
-            self.step
-                .is_multiple_of(self.config.occupancy_update_every.max(1)),
+            self.step >= self.config.occupancy_warmup_steps
+                && self
+                    .step
+                    .is_multiple_of(self.config.occupancy_update_every.max(1)),
         ) {
             grid.update(&self.field, &mut self.rng)?;
         }

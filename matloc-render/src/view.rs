@@ -219,8 +219,11 @@ pub fn render_view(
     }
     let (pixels, width, height) = pixel_positions(camera, pixels)?;
     let cfg = model.config();
-    let (rays, cos_axis, valid) =
+    let (mut rays, cos_axis, valid) =
         camera_rays(camera, cam_from_world, &pixels, cfg.near_m, cfg.far_m)?;
+    if let Some((lo, hi)) = cfg.clip_box() {
+        rays.clip_to_box(lo, hi);
+    }
     let opts = RenderOptions {
         march: cfg.render.march,
         dims: request.dims.clone(),
