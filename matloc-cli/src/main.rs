@@ -3,6 +3,7 @@
 
 mod dataset_cmd;
 mod partition_cmd;
+mod place_cmd;
 mod plot;
 mod progress;
 mod synth_cmd;
@@ -47,6 +48,11 @@ enum Command {
     },
     /// Split the scene into sub-NeRF blocks (pose-aware or Mega-NeRF grid) and plot them.
     Partition(partition_cmd::PartitionArgs),
+    /// Pose groups and the place predictor (coarse pose of a query image).
+    Place {
+        #[command(subcommand)]
+        command: place_cmd::PlaceCommand,
+    },
 }
 
 #[derive(Subcommand)]
@@ -69,6 +75,7 @@ fn main() -> ExitCode {
             command: DatasetCommand::Info { path, json },
         } => dataset_cmd::info(&path, json),
         Command::Partition(args) => partition_cmd::run(&args, cli.quiet),
+        Command::Place { command } => place_cmd::run(&command, cli.quiet),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
