@@ -28,6 +28,38 @@ pub enum PipelineError {
         /// Camera width, height.
         camera: (u32, u32),
     },
+    /// Rendering a block for matching failed.
+    #[error("rendering the map: {0}")]
+    RenderFailure(String),
+    /// Matching failed (e.g. encoder and map dims disagree).
+    #[error(transparent)]
+    Match(#[from] matloc_match::MatchError),
+    /// The query encoder failed.
+    #[error("query encoder: {0}")]
+    Encoder(String),
+    /// The place predictor failed.
+    #[error("place prediction: {0}")]
+    Place(String),
+    /// A block selects a feature dim the query encoder does not produce.
+    #[error("feature dim {dim} is selected by the map but not produced by the query encoder")]
+    DimsNotEncoded {
+        /// The field dim.
+        dim: usize,
+    },
+    /// An I/O error outside the map's own files.
+    #[error("{path}: {source}")]
+    Io {
+        /// The path.
+        path: std::path::PathBuf,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// The build configuration is invalid or cannot be serialised.
+    #[error("map config: {0}")]
+    Config(String),
+    /// The partition stage failed.
+    #[error("partition: {0}")]
+    Partition(String),
     /// A broken internal invariant (a bug, reported instead of panicking).
     #[error("internal error: {0}")]
     Internal(&'static str),

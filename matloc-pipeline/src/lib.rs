@@ -3,6 +3,9 @@
 //! - [`manifest`]: the map directory — a versioned JSON manifest (config, scene frame, blocks,
 //!   stage records, file list with SHA-256 checksums) next to safetensors/JSON files, all
 //!   written atomically, validated on load.
+//! - [`localizer`]: the MatLoc [`Localizer`] over the stage traits, with top-k fallback,
+//!   iterative refinement and refusal.
+//! - [`build`]: map building stage by stage, resumable.
 //! - [`baselines`]: rendered-RGB + keypoints, iNeRF and curriculum iNeRF from the same coarse
 //!   poses and map as MatLoc.
 //! - [`confidence`]: calibrated P(correct | inliers, inlier ratio, matches) and the refusal
@@ -13,16 +16,22 @@
 //! The command-line tool (`matloc`) only parses arguments, draws progress and plots, and calls
 //! into this crate.
 
+pub mod adapters;
 pub mod baselines;
+pub mod build;
 pub mod confidence;
 mod error;
 pub mod eval;
+pub mod localizer;
 pub mod manifest;
 
 pub use error::PipelineError;
 pub use eval::{
     MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
     timing_table,
+};
+pub use localizer::{
+    HypothesisReport, Localization, LocalizeOptions, Localizer, LocalizerBlock, QueryFeatureEncoder,
 };
 pub use manifest::{
     BlockEntry, FileEntry, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,

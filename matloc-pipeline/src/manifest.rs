@@ -363,6 +363,30 @@ impl MapDir {
         Ok(())
     }
 
+    /// Lists a file that another component already wrote (atomically) inside the map, with
+    /// its size and checksum.
+    pub fn register_file(&mut self, name: &str) -> Result<(), MapError> {
+        let path = self.path_of(name)?;
+        let bytes = fs::read(&path).map_err(|e| {
+            if e.kind() == io::ErrorKind::NotFound {
+                MapError::MissingFile { path: path.clone() }
+            } else {
+                MapError::Io {
+                    path: path.clone(),
+                    source: e,
+                }
+            }
+        })?;
+        self.manifest.files.insert(
+            name.to_string(),
+            FileEntry {
+                bytes: bytes.len() as u64,
+                sha256: sha256_hex(&bytes),
+            },
+        );
+        Ok(())
+    }
+
     /// Serialises `value` as pretty JSON into a map file (see [`MapDir::write_file`]).
     pub fn write_json<T: Serialize>(&mut self, name: &str, value: &T) -> Result<(), MapError> {
         let text = serde_json::to_vec_pretty(value).map_err(|e| MapError::Malformed {

@@ -1,0 +1,266 @@
+//! Map building: partition → one sub-NeRF per block → (ground-truth pairs → query encoder →
+//! per-region feature selection → pose groups and place predictor).
+//!
+//! Every stage writes its files through the [`MapDir`] (atomic, checksummed) and records itself
+//! as completed in the manifest; [`build_map`] skips completed stages, so a killed build resumes
+//! where it stopped, and a sub-NeRF that was interrupted mid-training resumes from its own
+//! checkpoint. Stages run in order; a block's NeRF trains on all cores (the kernels are
+//! parallel inside), which on 2 cores beats training two blocks side by side.
+
+use std::path::Path;
+use std::time::Instant;
+
+use matloc_data::{Dataset, Split};
+use matloc_partition::{
+    Partition, Partitioner, PoseAwareConfig, PoseAwarePartitioner, SampleConfig,
+    samples_from_dataset,
+};
+use matloc_render::{FitOptions, config_for_dataset, train_on_dataset};
+use serde::{Deserialize, Serialize};
+
+use crate::error::PipelineError;
+use crate::manifest::{BlockEntry, MapDir};
+
+/// Sub-NeRF training settings of a map build.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct NerfStageConfig {
+    /// Training steps per block.
+    pub steps: u64,
+    /// Steps between checkpoints (resume granularity).
+    pub checkpoint_every: u64,
+    /// Integer image downscale for training.
+    pub downscale: u32,
+}
+
+impl Default for NerfStageConfig {
+    fn default() -> Self {
+        Self {
+            steps: 3000,
+            checkpoint_every: 500,
+            downscale: 1,
+        }
+    }
+}
+
+/// Everything that defines a map build. Stored in the manifest; resuming a build requires the
+/// same config.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct MapConfig {
+    /// Ray samples of each training pose for the partition.
+    pub samples: SampleConfig,
+    /// Pose-aware partition (target ~150 poses per block, as the paper).
+    pub partition: PoseAwareConfig,
+    /// Sub-NeRF training.
+    pub nerf: NerfStageConfig,
+}
+
+/// A progress event of [`build_map`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum BuildEvent {
+    /// A stage starts; `total` units of work (0 = unknown).
+    StageStarted {
+        /// Stage name.
+        name: String,
+        /// Units of work.
+        total: u64,
+    },
+    /// Progress inside the current stage.
+    StageProgress {
+        /// Units done.
+        done: u64,
+        /// Short status (loss, PSNR, ...).
+        message: String,
+    },
+    /// A stage finished (or was skipped because a previous build completed it).
+    StageFinished {
+        /// Stage name.
+        name: String,
+        /// Seconds (0 when skipped).
+        seconds: f64,
+        /// Whether it was skipped.
+        skipped: bool,
+    },
+}
+
+/// Name of the partition file inside the map.
+pub const PARTITION_FILE: &str = "partition.json";
+
+/// Directory of block `b` inside the map.
+pub fn block_dir(b: usize) -> String {
+    format!("blocks/{b}")
+}
+
+/// The dataset restricted to one block: its training frames, plus the test frames whose camera
+/// centre lies inside the block's bounds (for evaluation), with the block's bounds as the scene
+/// box.
+pub fn block_dataset(dataset: &Dataset, partition: &Partition, block: usize) -> Dataset {
+    let b = &partition.blocks[block];
+    let train: Vec<usize> = dataset
+        .frames
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| f.split == Split::Train)
+        .map(|(i, _)| i)
+        .collect();
+    let mut frames = Vec::new();
+    for &id in &b.pose_ids {
+        if let Some(&i) = train.get(id) {
+            frames.push(dataset.frames[i].clone());
+        }
+    }
+    for f in dataset.split(Split::Test) {
+        let c = f.center();
+        let inside = (0..3).all(|k| c[k] >= b.bounds.min[k] && c[k] <= b.bounds.max[k]);
+        if inside {
+            frames.push(f.clone());
+        }
+    }
+    let mut metadata = dataset.metadata.clone();
+    metadata.bounds_min = Some(b.bounds.min);
+    metadata.bounds_max = Some(b.bounds.max);
+    Dataset {
+        root: dataset.root.clone(),
+        frames,
+        metadata,
+    }
+}
+
+/// Builds (or resumes building) a map of `dataset` in `out`.
+pub fn build_map(
+    dataset: &Dataset,
+    out: &Path,
+    config: &MapConfig,
+    progress: &mut dyn FnMut(&BuildEvent),
+) -> Result<MapDir, PipelineError> {
+    let config_json =
+        serde_json::to_value(config).map_err(|e| PipelineError::Config(e.to_string()))?;
+    let mut map = MapDir::create_or_resume(out, config_json)?;
+    if map.manifest().scene.is_null() {
+        map.manifest_mut().scene = serde_json::json!({
+            "dataset": dataset.root.display().to_string(),
+            "bounds_min": dataset.metadata.bounds_min,
+            "bounds_max": dataset.metadata.bounds_max,
+            "train_frames": dataset.split(Split::Train).count(),
+            "test_frames": dataset.split(Split::Test).count(),
+            "conventions": "cam_from_world, OpenCV camera axes, metres",
+        });
+        map.save()?;
+    }
+
+    // Stage: partition.
+    let partition: Partition = if map.stage_done("partition") {
+        progress(&BuildEvent::StageFinished {
+            name: "partition".into(),
+            seconds: 0.0,
+            skipped: true,
+        });
+        map.read_json(PARTITION_FILE)?
+    } else {
+        let t = Instant::now();
+        let train: Vec<usize> = dataset
+            .frames
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| f.split == Split::Train)
+            .map(|(i, _)| i)
+            .collect();
+        progress(&BuildEvent::StageStarted {
+            name: "partition".into(),
+            total: train.len() as u64,
+        });
+        let mut samples = samples_from_dataset(dataset, &train, &config.samples, &|| {})
+            .map_err(|e| PipelineError::Partition(e.to_string()))?;
+        // Pose ids are positions among the training frames (block_dataset relies on it).
+        for (k, s) in samples.iter_mut().enumerate() {
+            s.id = k;
+        }
+        let partition = PoseAwarePartitioner {
+            config: config.partition,
+        }
+        .partition(&samples)
+        .map_err(|e| PipelineError::Partition(e.to_string()))?;
+        map.write_json(PARTITION_FILE, &partition)?;
+        map.manifest_mut().blocks = partition
+            .blocks
+            .iter()
+            .map(|b| BlockEntry {
+                id: b.id,
+                bounds_min: b.bounds.min,
+                bounds_max: b.bounds.max,
+                num_poses: b.pose_ids.len(),
+                selected_dims: Vec::new(),
+            })
+            .collect();
+        let secs = t.elapsed().as_secs_f64();
+        map.complete_stage("partition", secs)?;
+        progress(&BuildEvent::StageFinished {
+            name: "partition".into(),
+            seconds: secs,
+            skipped: false,
+        });
+        partition
+    };
+
+    // Stage: one sub-NeRF per block.
+    for b in 0..partition.blocks.len() {
+        let name = format!("nerf/{b}");
+        if map.stage_done(&name) {
+            progress(&BuildEvent::StageFinished {
+                name,
+                seconds: 0.0,
+                skipped: true,
+            });
+            continue;
+        }
+        let t = Instant::now();
+        progress(&BuildEvent::StageStarted {
+            name: name.clone(),
+            total: config.nerf.steps,
+        });
+        let sub = block_dataset(dataset, &partition, b);
+        let model_config = config_for_dataset(&sub, config.nerf.steps);
+        let dir = map.path_of(&block_dir(b))?;
+        std::fs::create_dir_all(&dir).map_err(|e| PipelineError::Io {
+            path: dir.clone(),
+            source: e,
+        })?;
+        let opts = FitOptions {
+            steps: config.nerf.steps,
+            checkpoint_every: config.nerf.checkpoint_every,
+            downscale: config.nerf.downscale,
+        };
+        train_on_dataset(&sub, &model_config, &dir, &opts, |p| {
+            progress(&BuildEvent::StageProgress {
+                done: p.stats.step + 1,
+                message: format!(
+                    "loss {:.4} psnr {:.1} dB, {:.0} rays/s",
+                    p.stats.loss, p.stats.psnr, p.rays_per_s
+                ),
+            })
+        })?;
+        // The trainer wrote its files atomically; list them (checksums) in the manifest.
+        for entry in std::fs::read_dir(&dir).map_err(|e| PipelineError::Io {
+            path: dir.clone(),
+            source: e,
+        })? {
+            let entry = entry.map_err(|e| PipelineError::Io {
+                path: dir.clone(),
+                source: e,
+            })?;
+            let file = entry.file_name().to_string_lossy().to_string();
+            if entry.path().is_file() && !file.ends_with(".tmp") {
+                map.register_file(&format!("{}/{file}", block_dir(b)))?;
+            }
+        }
+        let secs = t.elapsed().as_secs_f64();
+        map.complete_stage(&name, secs)?;
+        progress(&BuildEvent::StageFinished {
+            name,
+            seconds: secs,
+            skipped: false,
+        });
+    }
+    Ok(map)
+}

@@ -1,0 +1,377 @@
+//! The MatLoc localizer: place recognition → render selected features at the coarse pose →
+//! encode the query → mutual-nearest-neighbour matches → PnP, composed from the stage traits
+//! so any stage can be swapped.
+//!
+//! Beyond the paper's single pass:
+//! - **top-k fallback**: when the best place hypothesis does not give a confident pose, the next
+//!   ones are tried (up to [`LocalizeOptions::top_k`]);
+//! - **iterative refinement**: after a confident pose, the map is re-rendered at the estimate
+//!   and matched again until the pose moves less than the convergence thresholds
+//!   (up to [`LocalizeOptions::max_passes`] passes in all);
+//! - **calibrated confidence and refusal**: every attempt is scored by the
+//!   [`ConfidenceModel`]; below its threshold the query is reported as not localized instead
+//!   of returning a wrong pose.
+
+use std::time::Instant;
+
+use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_core::{Camera, Image, Pose};
+use matloc_match::gt::ViewRenderer;
+use matloc_match::localize::{LocalizeError, render_map_points, solve_pose};
+use matloc_match::{Matcher, QueryFeatures};
+use matloc_place::PlacePredictor;
+use matloc_pnp::PoseSolver;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::confidence::{ConfidenceModel, Evidence};
+use crate::error::PipelineError;
+
+/// Encodes a query image into the NeRF feature domain (all the dims the map may select from).
+pub trait QueryFeatureEncoder: Send + Sync {
+    /// Field dims of the output channels, in channel order.
+    fn dims(&self) -> &[usize];
+    /// Image pixels per output cell (the rendering grid's stride).
+    fn stride(&self) -> u32;
+    /// Feature map of an RGB image (`⌊H/stride⌋ × ⌊W/stride⌋ × dims`).
+    fn encode(&self, image: &Image<f32>) -> Result<matloc_core::FeatureMap, PipelineError>;
+}
+
+/// One sub-NeRF block as the localizer sees it: its renderer and the dims selected for its
+/// region.
+pub struct LocalizerBlock<'a> {
+    /// Renders features + depth of the block.
+    pub renderer: &'a dyn ViewRenderer,
+    /// Field dims matched in this block's region (a subset of the encoder's dims).
+    pub dims: Vec<usize>,
+}
+
+/// Localizer settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LocalizeOptions {
+    /// Place hypotheses to try, best first.
+    pub top_k: usize,
+    /// Render/match passes per hypothesis (1 = the paper's single pass).
+    pub max_passes: usize,
+    /// Stop refining when the pose moves less than this (metres) ...
+    pub converge_translation_m: f64,
+    /// ... and less than this (degrees).
+    pub converge_rotation_deg: f64,
+    /// Rendered cells with less accumulated opacity are not matched.
+    pub min_accumulation: f32,
+    /// A solved pose farther than this from its hypothesis' coarse pose (metres) is rejected:
+    /// a place hypothesis is coarse, but not that wrong, and PnP on a wrong place can find a
+    /// self-consistent pose far away (measured on the synthetic world: a camera flipped by
+    /// 180° and moved 80 m, with 196 inliers).
+    pub max_correction_m: f64,
+    /// The same bound on the rotation, degrees.
+    pub max_correction_deg: f64,
+    /// Confidence model and refusal threshold.
+    pub confidence: ConfidenceModel,
+    /// Seed of the PnP sampler (per query, so results do not depend on query order).
+    pub seed: u64,
+}
+
+impl Default for LocalizeOptions {
+    fn default() -> Self {
+        Self {
+            top_k: 3,
+            max_passes: 3,
+            converge_translation_m: 0.02,
+            converge_rotation_deg: 0.05,
+            min_accumulation: 0.5,
+            max_correction_m: 25.0,
+            max_correction_deg: 45.0,
+            confidence: ConfidenceModel::default(),
+            seed: 0,
+        }
+    }
+}
+
+/// What happened with one place hypothesis.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HypothesisReport {
+    /// Pose group.
+    pub group: usize,
+    /// Place score.
+    pub score: f32,
+    /// Block rendered.
+    pub block: usize,
+    /// Coarse pose of the group.
+    pub coarse_cam_from_world: Pose,
+    /// Matches of the last pass.
+    pub matches: usize,
+    /// PnP inliers of the last pass.
+    pub inliers: usize,
+    /// Confidence of the last pass.
+    pub confidence: f64,
+    /// Passes run.
+    pub passes: usize,
+    /// Whether this hypothesis gave the accepted pose.
+    pub accepted: bool,
+    /// Why it failed, when it did before PnP produced a pose.
+    pub failure: Option<String>,
+}
+
+/// The result of localizing one query.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Localization {
+    /// The pose, or `None` when refused ("not localized").
+    pub cam_from_world: Option<Pose>,
+    /// Confidence of the returned (or best refused) attempt.
+    pub confidence: f64,
+    /// PnP inliers of the returned attempt.
+    pub inliers: usize,
+    /// Hypotheses tried, in order.
+    pub hypotheses: Vec<HypothesisReport>,
+    /// Seconds per stage, summed over hypotheses and passes
+    /// (`place`, `encode`, `render`, `match`, `pnp`).
+    pub stage_seconds: Vec<(String, f64)>,
+    /// End-to-end seconds.
+    pub total_seconds: f64,
+}
+
+/// The MatLoc localizer over the five stage interfaces.
+pub struct Localizer<'a> {
+    /// Coarse poses: top-k pose groups with the block serving each.
+    pub place: &'a dyn PlacePredictor,
+    /// Query image → NeRF feature domain.
+    pub encoder: &'a dyn QueryFeatureEncoder,
+    /// Sub-NeRF blocks, indexed by block id.
+    pub blocks: Vec<LocalizerBlock<'a>>,
+    /// 2D–3D matcher.
+    pub matcher: &'a dyn Matcher,
+    /// Pose solver.
+    pub solver: &'a dyn PoseSolver,
+    /// Settings.
+    pub options: LocalizeOptions,
+}
+
+struct StageClock(Vec<(String, f64)>);
+
+impl StageClock {
+    fn add(&mut self, name: &str, t: Instant) {
+        let s = t.elapsed().as_secs_f64();
+        if let Some(e) = self.0.iter_mut().find(|(n, _)| n == name) {
+            e.1 += s;
+        } else {
+            self.0.push((name.to_string(), s));
+        }
+    }
+}
+
+/// Result of one render → match → PnP pass.
+struct Pass {
+    pose: Option<Pose>,
+    matches: usize,
+    inliers: usize,
+    evidence: Evidence,
+}
+
+impl Localizer<'_> {
+    /// Channel indices of `dims` in the encoder's output.
+    fn channels_of(&self, dims: &[usize]) -> Result<Vec<usize>, PipelineError> {
+        let enc = self.encoder.dims();
+        dims.iter()
+            .map(|d| {
+                enc.iter()
+                    .position(|e| e == d)
+                    .ok_or(PipelineError::DimsNotEncoded { dim: *d })
+            })
+            .collect()
+    }
+
+    fn pass(
+        &self,
+        block: &LocalizerBlock<'_>,
+        query: &QueryFeatures,
+        camera: &Camera,
+        cam_from_world: &Pose,
+        rng: &mut ChaCha8Rng,
+        clock: &mut StageClock,
+    ) -> Result<Pass, PipelineError> {
+        let t = Instant::now();
+        let points = render_map_points(
+            block.renderer,
+            camera,
+            cam_from_world,
+            self.encoder.stride(),
+            &block.dims,
+            self.options.min_accumulation,
+        )
+        .map_err(localize_err)?;
+        clock.add("render", t);
+        let t = Instant::now();
+        let matches = match self.matcher.match_features(query, &points, None) {
+            Ok(m) => m,
+            Err(matloc_match::MatchError::Empty { .. }) => Vec::new(),
+            Err(e) => return Err(PipelineError::Match(e)),
+        };
+        clock.add("match", t);
+        let t = Instant::now();
+        let solved = solve_pose(&matches, camera, self.solver, rng);
+        clock.add("pnp", t);
+        Ok(match solved {
+            Ok(r) => Pass {
+                pose: Some(r.cam_from_world),
+                matches: matches.len(),
+                inliers: r.stats.num_inliers,
+                evidence: Evidence {
+                    inliers: r.stats.num_inliers,
+                    inlier_ratio: r.stats.inlier_ratio,
+                    matches: matches.len(),
+                },
+            },
+            Err(_) => Pass {
+                pose: None,
+                matches: matches.len(),
+                inliers: 0,
+                evidence: Evidence {
+                    inliers: 0,
+                    inlier_ratio: 0.0,
+                    matches: matches.len(),
+                },
+            },
+        })
+    }
+
+    /// Localizes one query image taken with `camera` (any resolution the camera describes;
+    /// lens distortion is handled by the renderer and the solver).
+    pub fn localize(
+        &self,
+        image: &Image<f32>,
+        camera: &Camera,
+    ) -> Result<Localization, PipelineError> {
+        let start = Instant::now();
+        let (w, h, c) = image.shape();
+        if w != camera.width as usize || h != camera.height as usize || c != 3 {
+            return Err(PipelineError::QueryShape {
+                image: (w, h, c),
+                camera: (camera.width, camera.height),
+            });
+        }
+        let mut clock = StageClock(Vec::new());
+        let mut rng = ChaCha8Rng::seed_from_u64(self.options.seed);
+
+        let t = Instant::now();
+        let hypotheses = self
+            .place
+            .predict(image, camera, self.options.top_k.max(1))
+            .map_err(|e| PipelineError::Place(e.to_string()))?;
+        clock.add("place", t);
+
+        let t = Instant::now();
+        let encoded = self.encoder.encode(image)?;
+        clock.add("encode", t);
+        let stride = self.encoder.stride() as f64;
+
+        let mut reports = Vec::new();
+        let mut best: Option<(f64, usize, Pose)> = None;
+        let mut accepted = None;
+        for hyp in &hypotheses {
+            let block_id = hyp.block.unwrap_or(0);
+            let mut report = HypothesisReport {
+                group: hyp.group,
+                score: hyp.score,
+                block: block_id,
+                coarse_cam_from_world: hyp.cam_from_world,
+                matches: 0,
+                inliers: 0,
+                confidence: 0.0,
+                passes: 0,
+                accepted: false,
+                failure: None,
+            };
+            let Some(block) = self.blocks.get(block_id) else {
+                report.failure = Some(format!("no block {block_id} in the map"));
+                reports.push(report);
+                continue;
+            };
+            let channels = self.channels_of(&block.dims)?;
+            let query = QueryFeatures::new(encoded.select_channels(&channels), stride);
+            let mut pose = hyp.cam_from_world;
+            let mut confidence = 0.0;
+            for pass_index in 0..self.options.max_passes.max(1) {
+                let pass = match self.pass(block, &query, camera, &pose, &mut rng, &mut clock) {
+                    Ok(p) => p,
+                    Err(PipelineError::RenderFailure(e)) => {
+                        report.failure = Some(e);
+                        break;
+                    }
+                    Err(e) => return Err(e),
+                };
+                report.passes = pass_index + 1;
+                report.matches = pass.matches;
+                report.inliers = pass.inliers;
+                let new_pose = pass.pose.filter(|p| {
+                    translation_error_m(p, &hyp.cam_from_world) <= self.options.max_correction_m
+                        && rotation_error_deg(p, &hyp.cam_from_world)
+                            <= self.options.max_correction_deg
+                });
+                let Some(new_pose) = new_pose else {
+                    if pass_index == 0 {
+                        report.failure = Some(match pass.pose {
+                            Some(_) => "pose too far from the coarse pose".to_string(),
+                            None => format!("no pose from {} matches", pass.matches),
+                        });
+                    }
+                    break;
+                };
+                let c = self.options.confidence.confidence(&pass.evidence);
+                // A refinement pass that loses the evidence keeps the earlier pose. (Comparing
+                // raw confidences would stop on noise once they saturate near 1.)
+                if pass_index > 0 && c < self.options.confidence.accept_threshold {
+                    break;
+                }
+                confidence = c;
+                report.confidence = c;
+                let moved_t = translation_error_m(&new_pose, &pose);
+                let moved_r = rotation_error_deg(&new_pose, &pose);
+                pose = new_pose;
+                if best.as_ref().is_none_or(|b| c > b.0) {
+                    best = Some((c, pass.inliers, pose));
+                }
+                if c < self.options.confidence.accept_threshold {
+                    break;
+                }
+                if pass_index > 0
+                    && moved_t < self.options.converge_translation_m
+                    && moved_r < self.options.converge_rotation_deg
+                {
+                    break;
+                }
+            }
+            let ok = report.passes > 0
+                && report.failure.is_none()
+                && confidence >= self.options.confidence.accept_threshold;
+            report.accepted = ok;
+            reports.push(report);
+            if ok {
+                accepted = Some((confidence, reports.last().map_or(0, |r| r.inliers), pose));
+                break;
+            }
+        }
+        let (cam_from_world, confidence, inliers) = match (accepted, best) {
+            (Some((c, n, p)), _) => (Some(p), c, n),
+            (None, Some((c, n, _))) => (None, c, n),
+            (None, None) => (None, 0.0, 0),
+        };
+        Ok(Localization {
+            cam_from_world,
+            confidence,
+            inliers,
+            hypotheses: reports,
+            stage_seconds: clock.0,
+            total_seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+fn localize_err(e: LocalizeError) -> PipelineError {
+    match e {
+        LocalizeError::Render(r) => PipelineError::RenderFailure(r.to_string()),
+        LocalizeError::Match(m) => PipelineError::Match(m),
+    }
+}
