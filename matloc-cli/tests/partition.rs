@@ -103,4 +103,43 @@ fn synth_tiny_then_partition() {
     ]);
     assert!(!o.status.success());
     assert!(text(&o).contains("--grid"), "{}", text(&o));
+
+    // Place predictor on the same data: a short training run, then the Table 4 evaluation.
+    let model = dir.path().join("place");
+    let o = matloc(&[
+        "place",
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--epochs",
+        "2",
+        "--partition",
+        json.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("pose groups"), "{t}");
+    assert!(model.join("place.json").is_file() && model.join("place.safetensors").is_file());
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model.join("place.json")).unwrap()).unwrap();
+    assert!(
+        v["groups"]["groups"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|g| g["block"].is_u64())
+    );
+    let o = matloc(&[
+        "place",
+        "eval",
+        "--data",
+        data.to_str().unwrap(),
+        "--model",
+        model.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("top-1") && t.contains("ArcFace"), "{t}");
 }
