@@ -83,6 +83,10 @@ pub struct EvalArgs {
     /// Overlap with the true view that counts as co-visible.
     #[arg(long, default_value_t = 0.5)]
     min_overlap: f64,
+    /// Also evaluate each classifier with the coarse pose refined to the group member nearest
+    /// in embedding space (instead of the group medoid).
+    #[arg(long)]
+    refine: bool,
 }
 
 /// Runs a `matloc place` subcommand.
@@ -231,17 +235,31 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
         "model", "ms/query", "(median)", "top-1", "top-3", "co-visible"
     );
     for dir in &args.model {
-        let model = PlaceModel::load(dir).with_context(|| format!("loading {}", dir.display()))?;
-        let row = evaluate(&model, &test, &train_camera, args.min_overlap)?;
-        println!(
-            "{:<34} {:>10.2} {:>10.2} {:>7.1}% {:>7.1}% {:>11.1}%",
-            format!("{:?} ({})", model.method(), short(dir)),
-            row.mean_ms,
-            row.median_ms,
-            100.0 * row.top1,
-            100.0 * row.top3,
-            100.0 * row.covisible
-        );
+        let mut model =
+            PlaceModel::load(dir).with_context(|| format!("loading {}", dir.display()))?;
+        let mut variants = vec![false];
+        if args.refine && model.method() == PlaceMethod::ArcFace {
+            variants.push(true);
+        }
+        for refine in variants {
+            model.set_refine_within_group(refine);
+            let row = evaluate(&model, &test, &train_camera, args.min_overlap)?;
+            let name = format!(
+                "{:?}{} ({})",
+                model.method(),
+                if refine { "+member" } else { "" },
+                short(dir)
+            );
+            println!(
+                "{:<34} {:>10.2} {:>10.2} {:>7.1}% {:>7.1}% {:>11.1}%",
+                name,
+                row.mean_ms,
+                row.median_ms,
+                100.0 * row.top1,
+                100.0 * row.top3,
+                100.0 * row.covisible
+            );
+        }
     }
     println!(
         "{} test views; co-visible = coarse pose sees >= {:.0} % of the ground the true view sees",

@@ -178,6 +178,12 @@ pub struct PlaceModel {
     /// Regression targets are `(centre − mean) / scale`.
     center_mean: [f64; 3],
     center_scale: f64,
+    /// Unit embeddings of the training images (classifier only), row-major `[n, D]`.
+    member_embeddings: Vec<f32>,
+    /// `cam_from_world` of the training images.
+    member_poses: Vec<Pose>,
+    /// Return the group member nearest in embedding space instead of the medoid.
+    refine_within_group: bool,
     net: Net,
     device: Device,
 }
@@ -191,6 +197,10 @@ struct ModelFile {
     groups: PoseGroups,
     center_mean: [f64; 3],
     center_scale: f64,
+    #[serde(default)]
+    member_embeddings: Vec<f32>,
+    #[serde(default)]
+    member_poses: Vec<Pose>,
 }
 
 /// Checks a batch of images: non-empty, RGB, finite.
@@ -413,15 +423,26 @@ impl PlaceModel {
             Net::ArcFace(m) => Net::ArcFace(m.valid().to_device(&plain)),
             Net::Regression(m) => Net::Regression(m.valid().to_device(&plain)),
         };
-        Ok(PlaceModel {
+        let mut model = PlaceModel {
             method,
             config: *config,
             groups: groups.clone(),
             center_mean: [mean.x, mean.y, mean.z],
             center_scale: scale,
+            member_embeddings: Vec::new(),
+            member_poses: poses.to_vec(),
+            refine_within_group: false,
             net,
             device: plain,
-        })
+        };
+        if method == PlaceMethod::ArcFace {
+            let mut emb = Vec::new();
+            for chunk in images.chunks(64) {
+                emb.extend(model.arcface_outputs(chunk)?.1);
+            }
+            model.member_embeddings = emb;
+        }
+        Ok(model)
     }
 
     /// The method.
@@ -442,6 +463,51 @@ impl PlaceModel {
     /// The training settings.
     pub fn config(&self) -> &TrainConfig {
         &self.config
+    }
+
+    /// Makes the classifier return, for each predicted group, the training pose of the member
+    /// whose image embedding is closest to the query's instead of the group medoid (no effect
+    /// on the regression baseline).
+    pub fn set_refine_within_group(&mut self, on: bool) {
+        self.refine_within_group = on;
+    }
+
+    /// Cosines to the class centres `[B, groups]` and unit embeddings `[B, D]` (classifier only;
+    /// empty vectors for the regression baseline).
+    fn arcface_outputs(&self, images: &[Image<f32>]) -> Result<(Vec<f32>, Vec<f32>), PlaceError> {
+        check_images(images)?;
+        let Net::ArcFace(m) = &self.net else {
+            return Ok((Vec::new(), Vec::new()));
+        };
+        let (w, h) = (self.config.net.input_width, self.config.net.input_height);
+        let small: Vec<Image<f32>> = images.iter().map(|img| resize_area(img, w, h)).collect();
+        let x = input_tensor(&small, &self.config.net, &self.device);
+        let e = m.embed(x);
+        let cos = e
+            .clone()
+            .matmul(crate::model::l2_normalize(m.centers.val()).transpose());
+        Ok((tensor_to_vec(cos), tensor_to_vec(e)))
+    }
+
+    /// The member of group `group` whose training embedding is closest to `emb`.
+    fn nearest_member(&self, group: usize, emb: &[f32]) -> Option<Pose> {
+        let d = emb.len();
+        if d == 0 || self.member_embeddings.len() != d * self.member_poses.len() {
+            return None;
+        }
+        let dot = |j: usize| -> f32 {
+            self.member_embeddings[j * d..(j + 1) * d]
+                .iter()
+                .zip(emb)
+                .map(|(a, b)| a * b)
+                .sum()
+        };
+        self.groups.groups[group]
+            .members
+            .iter()
+            .copied()
+            .max_by(|&a, &b| dot(a).total_cmp(&dot(b)).then(b.cmp(&a)))
+            .map(|j| self.member_poses[j])
     }
 
     /// Raw network outputs for a batch of images: `[B, groups]` cosines (ArcFace) or `[B, 7]`
@@ -564,6 +630,8 @@ impl PlaceModel {
             groups: self.groups.clone(),
             center_mean: self.center_mean,
             center_scale: self.center_scale,
+            member_embeddings: self.member_embeddings.clone(),
+            member_poses: self.member_poses.clone(),
         };
         let json = serde_json::to_vec_pretty(&file).map_err(|source| PlaceError::Json {
             path: jpath.clone(),
@@ -633,6 +701,9 @@ impl PlaceModel {
             groups: file.groups,
             center_mean: file.center_mean,
             center_scale: file.center_scale,
+            member_embeddings: file.member_embeddings,
+            member_poses: file.member_poses,
+            refine_within_group: false,
             net,
             device,
         })
@@ -655,6 +726,16 @@ impl PlacePredictor for PlaceModel {
                 field: "camera",
                 reason: format!("camera {cw}x{ch} does not match the image {iw}x{ih}"),
             });
+        }
+        if self.refine_within_group && self.method == PlaceMethod::ArcFace {
+            let (cos, emb) = self.arcface_outputs(std::slice::from_ref(image))?;
+            let mut h = self.hypotheses_from_output(&cos, k);
+            for x in &mut h {
+                if let Some(p) = self.nearest_member(x.group, &emb) {
+                    x.cam_from_world = p;
+                }
+            }
+            return Ok(h);
         }
         let out = self.forward_batch(std::slice::from_ref(image))?;
         Ok(self.hypotheses_from_output(&out, k))

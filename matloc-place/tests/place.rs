@@ -152,6 +152,20 @@ fn arcface_place_model_beats_chance_and_round_trips() {
         .fold(0.0, f32::max);
     assert!(diff < 1e-5, "{diff}");
     assert_eq!(back.groups(), model.groups());
+
+    // Member refinement returns a training pose of the predicted group.
+    let mut back = back;
+    back.set_refine_within_group(true);
+    for v in s.test.iter().take(5) {
+        for h in back.predict(&v.image, &s.camera, 2).unwrap() {
+            assert!(
+                g.groups[h.group]
+                    .members
+                    .iter()
+                    .any(|&m| poses[m] == h.cam_from_world)
+            );
+        }
+    }
 }
 
 #[test]
