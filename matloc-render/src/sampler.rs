@@ -102,10 +102,11 @@ pub fn march_ray(
         out.push((a, b));
     }
     if out.len() > cfg.max_samples && cfg.max_samples > 0 {
-        let group = out.len().div_ceil(cfg.max_samples);
-        out = out
-            .chunks(group)
-            .map(|c| (c[0].0, c[c.len() - 1].1))
+        // Groups of ⌊n/m⌋ or ⌈n/m⌉ consecutive intervals, so exactly `max_samples` remain
+        // (fixed-size groups of ⌈n/m⌉ left 25 of 49 jittered steps at a budget of 48).
+        let (n, m) = (out.len(), cfg.max_samples);
+        out = (0..m)
+            .map(|g| (out[g * n / m].0, out[(g + 1) * n / m - 1].1))
             .collect();
     }
     out
