@@ -2,6 +2,7 @@
 //! and prints reports; all work happens in the library crates.
 
 mod dataset_cmd;
+mod nerf_cmd;
 mod partition_cmd;
 mod place_cmd;
 mod plot;
@@ -46,6 +47,8 @@ enum Command {
         #[command(subcommand)]
         command: DatasetCommand,
     },
+    /// Train a NeRF on a dataset, or render its test views with metrics.
+    Nerf(nerf_cmd::NerfArgs),
     /// Split the scene into sub-NeRF blocks (pose-aware or Mega-NeRF grid) and plot them.
     Partition(partition_cmd::PartitionArgs),
     /// Pose groups and the place predictor (coarse pose of a query image).
@@ -74,6 +77,7 @@ fn main() -> ExitCode {
         Command::Dataset {
             command: DatasetCommand::Info { path, json },
         } => dataset_cmd::info(&path, json),
+        Command::Nerf(args) => nerf_cmd::run(&args, cli.quiet),
         Command::Partition(args) => partition_cmd::run(&args, cli.quiet),
         Command::Place { command } => place_cmd::run(&command, cli.quiet),
     };
