@@ -2,6 +2,7 @@
 //! and prints reports; all work happens in the library crates.
 
 mod dataset_cmd;
+mod match_cmd;
 mod nerf_cmd;
 mod partition_cmd;
 mod place_cmd;
@@ -56,6 +57,8 @@ enum Command {
         #[command(subcommand)]
         command: place_cmd::PlaceCommand,
     },
+    /// Ground-truth 2D-3D pairs, and the Table 3 evaluation of matching with selected features.
+    Match(match_cmd::MatchArgs),
 }
 
 #[derive(Subcommand)]
@@ -80,6 +83,7 @@ fn main() -> ExitCode {
         Command::Nerf(args) => nerf_cmd::run(&args, cli.quiet),
         Command::Partition(args) => partition_cmd::run(&args, cli.quiet),
         Command::Place { command } => place_cmd::run(&command, cli.quiet),
+        Command::Match(args) => match_cmd::run(&args, cli.quiet),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
