@@ -198,6 +198,22 @@ fn io_err(path: &Path) -> impl FnOnce(io::Error) -> MapError + '_ {
     }
 }
 
+/// Maps an I/O error on a listed file: "not found" becomes [`MapError::MissingFile`].
+fn file_err(path: &Path) -> impl FnOnce(io::Error) -> MapError + '_ {
+    move |e| {
+        if e.kind() == io::ErrorKind::NotFound {
+            MapError::MissingFile {
+                path: path.to_path_buf(),
+            }
+        } else {
+            MapError::Io {
+                path: path.to_path_buf(),
+                source: e,
+            }
+        }
+    }
+}
+
 /// Lower-case hex SHA-256 of `bytes`.
 pub fn sha256_hex(bytes: &[u8]) -> String {
     let digest = Sha256::digest(bytes);
@@ -303,16 +319,7 @@ impl MapDir {
         };
         for (name, entry) in &dir.manifest.files {
             let p = dir.root.join(name);
-            let meta = fs::metadata(&p).map_err(|e| {
-                if e.kind() == io::ErrorKind::NotFound {
-                    MapError::MissingFile { path: p.clone() }
-                } else {
-                    MapError::Io {
-                        path: p.clone(),
-                        source: e,
-                    }
-                }
-            })?;
+            let meta = fs::metadata(&p).map_err(file_err(&p))?;
             if meta.len() != entry.bytes {
                 return Err(MapError::SizeMismatch {
                     path: p,
@@ -367,16 +374,7 @@ impl MapDir {
     /// its size and checksum.
     pub fn register_file(&mut self, name: &str) -> Result<(), MapError> {
         let path = self.path_of(name)?;
-        let bytes = fs::read(&path).map_err(|e| {
-            if e.kind() == io::ErrorKind::NotFound {
-                MapError::MissingFile { path: path.clone() }
-            } else {
-                MapError::Io {
-                    path: path.clone(),
-                    source: e,
-                }
-            }
-        })?;
+        let bytes = fs::read(&path).map_err(file_err(&path))?;
         self.manifest.files.insert(
             name.to_string(),
             FileEntry {
@@ -409,16 +407,7 @@ impl MapDir {
         let mut bytes = Vec::with_capacity(entry.bytes as usize);
         fs::File::open(&path)
             .and_then(|mut f| f.read_to_end(&mut bytes))
-            .map_err(|e| {
-                if e.kind() == io::ErrorKind::NotFound {
-                    MapError::MissingFile { path: path.clone() }
-                } else {
-                    MapError::Io {
-                        path: path.clone(),
-                        source: e,
-                    }
-                }
-            })?;
+            .map_err(file_err(&path))?;
         if bytes.len() as u64 != entry.bytes {
             return Err(MapError::SizeMismatch {
                 path,
