@@ -1,23 +1,10 @@
 //! Runs the `matloc` binary as a user would.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn matloc(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_matloc"))
-        .args(args)
-        .arg("--quiet")
-        .output()
-        .expect("binary runs")
-}
+mod common;
 
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
+use common::{matloc, text};
 
 #[test]
 fn synth_tiny_then_info() {

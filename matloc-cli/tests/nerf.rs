@@ -1,22 +1,8 @@
 //! `matloc nerf train` / `matloc nerf render` on the tiny synthetic preset, as a user runs them.
 
-use std::process::{Command, Output};
+mod common;
 
-fn matloc(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_matloc"))
-        .args(args)
-        .arg("--quiet")
-        .output()
-        .expect("binary runs")
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
+use common::{matloc, text};
 
 #[test]
 fn train_resume_and_render_tiny() {

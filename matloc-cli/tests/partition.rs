@@ -1,22 +1,8 @@
 //! `matloc synth --preset tiny` then `matloc partition`, as a user would run them.
 
-use std::process::{Command, Output};
+mod common;
 
-fn matloc(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_matloc"))
-        .args(args)
-        .arg("--quiet")
-        .output()
-        .expect("binary runs")
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
+use common::{matloc, text};
 
 #[test]
 fn synth_tiny_then_partition() {
