@@ -10,6 +10,8 @@
 //!   and [`kernel::nn_tables_faer`] (faer GEMM) materialise it for tests and benchmarks.
 //! - The lower-level [`prepare_rows`] and [`mnn_prepared`] work on plain row-major buffers; the
 //!   feature selector uses them.
+//! - [`subcell`] refines each match below the grid cell (on by default: query side, parabola
+//!   fit), so the 2D–3D correspondences are continuous and PnP is not limited by the grid.
 //! - [`gt`] generates ground-truth 2D–3D pairs from perturbed training poses (paper 3.1.2)
 //!   through any [`gt::ViewRenderer`]; [`synth_view`] is one backed by the synthetic world's
 //!   exact geometry and an analytic feature field, [`nerf_view`] one over a trained NeRF.
@@ -25,6 +27,7 @@ pub mod kernel;
 pub mod localize;
 pub mod mnn;
 pub mod nerf_view;
+pub mod subcell;
 pub mod synth_view;
 pub mod types;
 
@@ -34,4 +37,5 @@ pub use mnn::{
     FeatureStats, Matcher, MnnConfig, MnnKernel, MnnMatcher, RawMatch, check_selection,
     mnn_prepared, mutual_from_tables, prepare_rows, tables,
 };
+pub use subcell::{SubcellConfig, SubcellFit, SubcellSide};
 pub use types::{Match2d3d, QueryFeatures, QueryGrid, RenderedPoints};

@@ -146,9 +146,11 @@ pub struct LocalizeConfig {
     /// Rendered cells with less accumulation are not matched.
     pub min_accumulation: f32,
     /// Render–match–PnP rounds; each later round renders at the previous estimate (beyond the
-    /// paper, which stops after one round). With `map_stride` equal to the query's this cannot
-    /// fix quantisation: matching cell `i` to the point lifted at cell `i` reproduces the pose
-    /// it was rendered at.
+    /// paper, which stops after one round). Without sub-cell refinement
+    /// ([`crate::SubcellConfig`]) this cannot fix quantisation: matching cell `i` to the point
+    /// lifted at cell `i` reproduces the pose it was rendered at. With it (the default) later
+    /// rounds converge (tiny preset, exact query features: 0.16 m after one round, 0.05 m
+    /// after three).
     pub iterations: usize,
 }
 

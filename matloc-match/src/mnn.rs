@@ -2,7 +2,9 @@
 
 use crate::error::{MatchError, Side};
 use crate::kernel::{NnTables, nn_tables_faer, nn_tables_reference, nn_tables_tiled};
+use crate::subcell::{PreparedGrid, SubcellConfig, SubcellSide, interpolate_point, peak_offset};
 use crate::types::{Match2d3d, QueryFeatures, RenderedPoints};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Per-dimension standardisation statistics over all `D` feature dims; the map stores them and
@@ -67,6 +69,9 @@ pub struct MnnConfig {
     pub l2_normalise: bool,
     /// Kernel used for the tables.
     pub kernel: MnnKernel,
+    /// Sub-cell refinement of the matches ([`crate::subcell`]); only [`Matcher::match_features`]
+    /// applies it (the raw [`mnn_prepared`] pairs are cell indices).
+    pub subcell: SubcellConfig,
 }
 
 impl Default for MnnConfig {
@@ -77,6 +82,7 @@ impl Default for MnnConfig {
             stats: None,
             l2_normalise: true,
             kernel: MnnKernel::Tiled,
+            subcell: SubcellConfig::default(),
         }
     }
 }
@@ -94,6 +100,13 @@ impl MnnConfig {
             && t.is_nan()
         {
             return Err(MatchError::InvalidConfig("min_similarity is NaN".into()));
+        }
+        let sc = &self.subcell;
+        if !(sc.max_shift >= 0.0 && sc.max_shift.is_finite()) || sc.max_spacing_ratio.is_nan() {
+            return Err(MatchError::InvalidConfig(format!(
+                "sub-cell max_shift must be finite and >= 0 (got {}), max_spacing_ratio not NaN",
+                sc.max_shift
+            )));
         }
         if let Some(s) = &self.stats {
             if s.mean.len() != dims || s.std.len() != dims {
@@ -346,14 +359,61 @@ impl Matcher for MnnMatcher {
         let q = prepare_rows(query.map.data(), qd, &qrows, sel, stats, norm, Side::Query)?;
         let mrows = map.valid_indices();
         let mp = prepare_rows(map.features(), qd, &mrows, sel, stats, norm, Side::Map)?;
-        let raw = mnn_prepared(&q, &mp, sel.len(), &self.config)?;
+        let d = sel.len();
+        let raw = mnn_prepared(&q, &mp, d, &self.config)?;
+        let sc = &self.config.subcell;
+        let (qw, qh) = (query.map.width(), query.map.height());
+        let qgrid = PreparedGrid {
+            data: &q,
+            d,
+            cols: qw,
+            rows: qh,
+            row_of: None,
+        };
+        // Map cell -> prepared map row, for map-side refinement on a gridded map.
+        let map_rows: Option<Vec<u32>> = match (sc.side, map.grid()) {
+            (SubcellSide::Map, Some(_)) => {
+                let mut r = vec![u32::MAX; map.len()];
+                for (k, &i) in mrows.iter().enumerate() {
+                    r[i] = k as u32;
+                }
+                Some(r)
+            }
+            _ => None,
+        };
+        // Refinement is a few dot products per match: parallel over matches, order kept.
         Ok(raw
-            .into_iter()
+            .into_par_iter()
             .map(|r| {
                 let mi = mrows[r.map];
+                let mut query_px = query.cell_px(r.query);
+                let mut point_world = map.points()[mi];
+                match (sc.side, map.grid(), &map_rows) {
+                    (SubcellSide::Query, _, _) => {
+                        let target = &mp[r.map * d..(r.map + 1) * d];
+                        let off = peak_offset(target, &qgrid, r.query, sc);
+                        for (k, o) in off.iter().enumerate() {
+                            query_px[k] += query.grid.stride * o.unwrap_or(0.0);
+                        }
+                    }
+                    (SubcellSide::Map, Some((cols, rows)), Some(row_of)) => {
+                        let target = &q[r.query * d..(r.query + 1) * d];
+                        let mgrid = PreparedGrid {
+                            data: &mp,
+                            d,
+                            cols,
+                            rows,
+                            row_of: Some(row_of),
+                        };
+                        let off = peak_offset(target, &mgrid, mi, sc);
+                        point_world =
+                            interpolate_point(map, cols, rows, mi, off, sc.max_spacing_ratio);
+                    }
+                    _ => {}
+                }
                 Match2d3d {
-                    query_px: query.cell_px(r.query),
-                    point_world: map.points()[mi],
+                    query_px,
+                    point_world,
                     similarity: r.similarity,
                     query_index: r.query,
                     map_index: mi,

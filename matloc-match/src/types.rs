@@ -101,6 +101,10 @@ pub struct RenderedPoints {
     features: Vec<f32>,
     points: Vec<[f64; 3]>,
     valid: Vec<bool>,
+    /// Row-major grid layout `(cols, rows)` of the points, when they come from a rendered grid
+    /// (sub-cell refinement on the map side needs the neighbours of a cell).
+    #[serde(default)]
+    grid: Option<(usize, usize)>,
 }
 
 impl RenderedPoints {
@@ -127,7 +131,25 @@ impl RenderedPoints {
             features,
             points,
             valid,
+            grid: None,
         })
+    }
+
+    /// Declares the points a row-major `cols × rows` grid (point `row·cols + col`).
+    pub fn with_grid(mut self, cols: usize, rows: usize) -> Result<Self, MatchError> {
+        if cols.checked_mul(rows) != Some(self.len()) {
+            return Err(MatchError::Shape(format!(
+                "a {cols}x{rows} grid does not hold {} points",
+                self.len()
+            )));
+        }
+        self.grid = Some((cols, rows));
+        Ok(self)
+    }
+
+    /// Grid layout `(cols, rows)`, if the points form one.
+    pub fn grid(&self) -> Option<(usize, usize)> {
+        self.grid
     }
 
     /// All points valid.
@@ -161,7 +183,8 @@ impl RenderedPoints {
             .zip(&points)
             .map(|(&acc, p)| acc >= min_accumulation && p.iter().all(|v| v.is_finite()))
             .collect();
-        Self::new(features.channels(), features.data().to_vec(), points, valid)
+        Self::new(features.channels(), features.data().to_vec(), points, valid)?
+            .with_grid(features.width(), features.height())
     }
 
     /// Feature dims.

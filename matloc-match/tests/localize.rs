@@ -1,7 +1,7 @@
 //! Localization from a perturbed pose on the tiny synthetic preset: render the map at the coarse
 //! pose, match query features against it, solve PnP. Query features are rendered at the true
-//! pose (a perfect encoder), so this checks the matching + PnP chain and the geometry of the
-//! lifted map points, not the encoder.
+//! pose (a perfect encoder), so this checks the matching + PnP chain, the sub-cell refinement
+//! and the geometry of the lifted map points, not the encoder.
 
 use matloc_core::FeatureMap;
 use matloc_core::metrics::{median, rotation_error_deg, translation_error_m};
@@ -12,7 +12,9 @@ use matloc_match::localize::{
     LocalizeConfig, correct_matches, localize, render_map_points, solve_pose, timed_match,
 };
 use matloc_match::synth_view::{SynthFeatureField, SynthFeatureRenderer, SynthFieldConfig};
-use matloc_match::{FeatureStats, MatchError, Matcher, MnnConfig, MnnMatcher, QueryFeatures};
+use matloc_match::{
+    FeatureStats, MatchError, Matcher, MnnConfig, MnnMatcher, QueryFeatures, SubcellConfig,
+};
 use matloc_pnp::LoRansacPnp;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -40,6 +42,7 @@ fn localizes_from_a_perturbed_pose() {
     };
     let solver = LoRansacPnp::default();
     let (mut t0, mut t1, mut t2, mut r1, mut precision) = (vec![], vec![], vec![], vec![], vec![]);
+    let mut t_off = vec![];
     for (k, f) in tests.iter().enumerate() {
         let truth = &f.cam_from_world;
         let q = renderer.render_view(&f.camera, truth, 4, &all).unwrap();
@@ -60,6 +63,14 @@ fn localizes_from_a_perturbed_pose() {
         let res = solve_pose(&tm.matches, &f.camera, &solver, &mut rng).unwrap();
         t0.push(translation_error_m(&coarse, truth));
         t1.push(translation_error_m(&res.cam_from_world, truth));
+        // The same round without sub-cell refinement.
+        let plain = MnnMatcher::new(MnnConfig {
+            subcell: SubcellConfig::off(),
+            ..matcher.config.clone()
+        });
+        let tp = timed_match(&plain, &query, &map, None).unwrap();
+        let rp = solve_pose(&tp.matches, &f.camera, &solver, &mut rng).unwrap();
+        t_off.push(translation_error_m(&rp.cam_from_world, truth));
         r1.push(rotation_error_deg(&res.cam_from_world, truth));
         // The library loop: two render-match-PnP rounds, the second at the first estimate.
         let two = localize(
@@ -88,16 +99,27 @@ fn localizes_from_a_perturbed_pose() {
     );
     let m2 = median(&t2).unwrap();
     let mp = precision.iter().sum::<f64>() / precision.len() as f64;
-    // One round: ~1 px of grid quantisation at stride 4 on a 160 px wide image is ~0.3 m on the
-    // ground, which bounds a single round's accuracy.
+    eprintln!(
+        "start {m0:.3} m, one round {m1:.3} m / {mr:.3} deg, two rounds {m2:.3} m, \
+         unrefined {:.3} m",
+        median(&t_off).unwrap()
+    );
+    // Measured (2026-12-01): start 2.62 m; one round 0.152 m / 0.26° (unrefined 0.254 m, the
+    // stride-4 grid's quantisation at ~0.3 m per cell on the ground); two rounds 0.076 m (the
+    // unrefined loop cannot improve on round one). Thresholds leave ~40 % margin.
     assert!(mp > 0.5, "match precision {mp:.3}");
+    let m_off = median(&t_off).unwrap();
     assert!(
-        m1 < 0.4 && m1 < m0 / 5.0,
+        m1 < 0.22 && m1 < m0 / 10.0,
         "median t error {m1:.3} m from {m0:.3} m"
     );
-    assert!(mr < 1.0, "median R error {mr:.3} deg");
     assert!(
-        m2 < 0.4 && m2 < m0 / 5.0,
+        m1 < 0.8 * m_off,
+        "refined {m1:.3} m vs unrefined {m_off:.3} m"
+    );
+    assert!(mr < 0.5, "median R error {mr:.3} deg");
+    assert!(
+        m2 < 0.12 && m2 < m0 / 20.0,
         "two rounds: median t error {m2:.3} m from {m0:.3} m"
     );
 }

@@ -330,3 +330,82 @@ fn typed_errors() {
         Err(MatchError::Empty { side: Side::Query })
     );
 }
+
+/// A smooth 24-d field over the plane (periods 6–24 cells, distinct directions).
+fn smooth_field(x: f64, y: f64) -> Vec<f32> {
+    (0..24)
+        .map(|k| {
+            let a = k as f64 * 2.399;
+            let w = std::f64::consts::TAU / (6.0 + 18.0 * (k as f64 / 24.0));
+            (w * (a.cos() * x + a.sin() * y) + 0.7 * k as f64).sin() as f32
+        })
+        .collect()
+}
+
+/// Query grid at integer field positions, map grid shifted by a fraction of a cell, each map
+/// point at its field position `(x, y, 0)`. A correct continuous correspondence has
+/// `point.xy == query_px − 0.5` (stride 1, cell centres at +0.5).
+#[test]
+fn subcell_refinement_removes_the_grid_offset() {
+    let (cols, rows) = (16usize, 12usize);
+    let (sx, sy) = (0.3, -0.2);
+    let qdata: Vec<f32> = (0..cols * rows)
+        .flat_map(|i| smooth_field((i % cols) as f64, (i / cols) as f64))
+        .collect();
+    let mut mdata = Vec::new();
+    let mut points = Vec::new();
+    for i in 0..cols * rows {
+        let (x, y) = ((i % cols) as f64 + sx, (i / cols) as f64 + sy);
+        mdata.extend(smooth_field(x, y));
+        points.push([x, y, 0.0]);
+    }
+    let query = QueryFeatures::new(FeatureMap::from_vec(cols, rows, 24, qdata).unwrap(), 1.0);
+    let map = RenderedPoints::all_valid(24, mdata, points)
+        .unwrap()
+        .with_grid(cols, rows)
+        .unwrap();
+    assert_eq!(map.grid(), Some((cols, rows)));
+    let median_error = |side: SubcellSide| {
+        let m = MnnMatcher::new(MnnConfig {
+            subcell: SubcellConfig {
+                side,
+                ..Default::default()
+            },
+            ..Default::default()
+        });
+        let matches = m.match_features(&query, &map, None).unwrap();
+        assert!(matches.len() > cols * rows / 2, "{} matches", matches.len());
+        let mut e: Vec<f64> = matches
+            .iter()
+            .map(|m| {
+                (m.point_world[0] - (m.query_px[0] - 0.5))
+                    .hypot(m.point_world[1] - (m.query_px[1] - 0.5))
+            })
+            .collect();
+        e.sort_by(f64::total_cmp);
+        e[e.len() / 2]
+    };
+    let off = median_error(SubcellSide::Off);
+    let map_side = median_error(SubcellSide::Map);
+    let query_side = median_error(SubcellSide::Query);
+    // Unrefined: the full grid offset |(0.3, -0.2)| = 0.36 cells.
+    assert!((off - 0.36).abs() < 0.01, "off {off:.3}");
+    assert!(map_side < 0.05, "map side {map_side:.3}");
+    assert!(query_side < 0.05, "query side {query_side:.3}");
+    // Without a grid layout the map side cannot refine and leaves the matches as they are.
+    let plain =
+        RenderedPoints::all_valid(24, map.features().to_vec(), map.points().to_vec()).unwrap();
+    let m = MnnMatcher::default();
+    let a = m.match_features(&query, &plain, None).unwrap();
+    for x in &a {
+        assert_eq!(x.point_world, plain.points()[x.map_index]);
+        assert_eq!(x.query_px, query.cell_px(x.query_index));
+    }
+}
+
+#[test]
+fn grid_layout_must_fit_the_points() {
+    let map = RenderedPoints::all_valid(1, vec![0.0; 6], vec![[0.0; 3]; 6]).unwrap();
+    assert!(map.clone().with_grid(4, 2).is_err());
+    assert_eq!(map.with_grid(3, 2).unwrap().grid(), Some((3, 2)));
+}
