@@ -71,7 +71,8 @@ pub use fit::{
     config_for_dataset, evaluate, has_checkpoint, save_checkpoint, train_on_dataset,
 };
 pub use model::{
-    CONFIG_FILE, MODEL_FORMAT, ModelConfig, NerfModel, ViewConfig, WEIGHTS_FILE, config_differences,
+    CONFIG_FILE, DepthKind, MODEL_FORMAT, ModelConfig, NerfModel, ViewConfig, WEIGHTS_FILE,
+    config_differences,
 };
 pub use occupancy::{OccupancyConfig, OccupancyGrid};
 pub use rays::{RayBatch, RaySamples};

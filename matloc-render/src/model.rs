@@ -20,6 +20,18 @@ pub const WEIGHTS_FILE: &str = "model.safetensors";
 /// File name of the JSON config inside a model directory.
 pub const CONFIG_FILE: &str = "model.json";
 
+/// Which depth [`crate::render_view`] reports in `distance` / `z_depth`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum DepthKind {
+    /// Expected distance `Σ w_k t_k / Σ w_k`.
+    #[default]
+    Expected,
+    /// Median distance: where the ray's transmittance falls to 0.5 (the expected distance
+    /// where it never does). Insensitive to thin fog in front of and weight spread behind a
+    /// surface, which bias the expected depth of short training runs.
+    Median,
+}
+
 /// Inference sampling settings of a model (used by [`crate::render_view`]).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -32,6 +44,14 @@ pub struct ViewConfig {
     pub samples_per_round: usize,
     /// Rays per tile (bounds memory).
     pub tile_rays: usize,
+    /// Density (normalised units, multiples of `SceneBox::density_scale`) below which space
+    /// counts as empty at render time: occupancy cells whose estimate is below it are
+    /// skipped ([`OccupancyGrid::pruned`]) and samples below it add nothing. Removes the thin
+    /// fog of short training runs, which otherwise costs most of the samples of a view and
+    /// pulls depth towards the camera. 0 = off.
+    pub min_density: f32,
+    /// Depth estimator of `distance` / `z_depth`.
+    pub depth: DepthKind,
 }
 
 impl Default for ViewConfig {
@@ -41,6 +61,8 @@ impl Default for ViewConfig {
             min_transmittance: 1e-3,
             samples_per_round: 8,
             tile_rays: 16_384,
+            min_density: 0.0,
+            depth: DepthKind::Expected,
         }
     }
 }
@@ -163,6 +185,12 @@ impl ModelConfig {
                 });
             }
         }
+        if !(self.render.min_density >= 0.0 && self.render.min_density.is_finite()) {
+            return Err(RenderError::InvalidConfig {
+                field: "render.min_density",
+                reason: format!("must be finite and >= 0, got {}", self.render.min_density),
+            });
+        }
         if self.render.samples_per_round == 0 || self.render.tile_rays == 0 {
             return Err(RenderError::InvalidConfig {
                 field: "render.samples_per_round/tile_rays",
@@ -184,6 +212,8 @@ pub struct NerfModel {
     config: ModelConfig,
     field: NerfactoField,
     grid: OccupancyGrid,
+    /// `grid` pruned at `config.render.min_density` (derived, not saved).
+    render_grid: OccupancyGrid,
     background: [f32; 3],
     step: u64,
 }
@@ -202,9 +232,10 @@ impl NerfModel {
         let field = NerfactoField::new(config.field.clone())?;
         let grid = OccupancyGrid::new(config.train.occupancy, config.field.scene_box)?;
         let background = match config.train.background {
-            Background::Fixed(c) | Background::Learned(c) => c,
+            Background::Fixed(c) | Background::Learned(c) | Background::Random(c) => c,
         };
         Ok(Self {
+            render_grid: grid.pruned(config.render.min_density),
             config,
             field,
             grid,
@@ -230,12 +261,24 @@ impl NerfModel {
             });
         }
         Ok(Self {
+            render_grid: grid.pruned(config.render.min_density),
             config,
             field,
             grid,
             background,
             step,
         })
+    }
+
+    /// The same model with other inference settings (the weights are unchanged; the
+    /// render-time grid is re-derived). Saving it stores the new settings.
+    pub fn with_view_config(mut self, render: ViewConfig) -> Result<Self, RenderError> {
+        let mut config = self.config.clone();
+        config.render = render;
+        config.validate()?;
+        self.render_grid = self.grid.pruned(render.min_density);
+        self.config = config;
+        Ok(self)
     }
 
     /// The configs.
@@ -248,9 +291,15 @@ impl NerfModel {
         &self.field
     }
 
-    /// The occupancy grid used for empty-space skipping.
+    /// The occupancy grid of training (saved with the model).
     pub fn grid(&self) -> &OccupancyGrid {
         &self.grid
+    }
+
+    /// The grid [`crate::render_view`] skips empty space with: [`NerfModel::grid`] pruned at
+    /// `config.render.min_density`.
+    pub fn render_grid(&self) -> &OccupancyGrid {
+        &self.render_grid
     }
 
     /// Colour behind the scene.
@@ -380,6 +429,7 @@ impl NerfModel {
         let bg = read_tensor(&st, "background", &[3], &weights_path)?;
         Ok(Self {
             background: [bg[0], bg[1], bg[2]],
+            render_grid: grid.pruned(config.render.min_density),
             config,
             field,
             grid,

@@ -25,6 +25,11 @@ pub struct OccupancyConfig {
     /// Fraction of cells re-evaluated per update after the first (full) one; cells are drawn
     /// at random. 1.0 = every cell every update.
     pub update_fraction: f32,
+    /// Cap the threshold at the mean estimate (instant-ngp's rule, which keeps the denser
+    /// half of a still-uniform field occupied early on). With a scene box that holds most of
+    /// the grid's cells in its contracted shell, the mean sits near the initial density and
+    /// nothing in the box is ever pruned; `false` applies `density_threshold` as is.
+    pub cap_at_mean: bool,
 }
 
 impl Default for OccupancyConfig {
@@ -34,6 +39,7 @@ impl Default for OccupancyConfig {
             decay: 0.5,
             density_threshold: 0.1,
             update_fraction: 1.0,
+            cap_at_mean: true,
         }
     }
 }
@@ -164,15 +170,54 @@ impl OccupancyGrid {
     }
 
     fn rebuild_bits(&mut self) {
-        let mean = self.density.iter().map(|&d| d as f64).sum::<f64>() / self.num_cells() as f64;
-        let thr = ((self.config.density_threshold * self.scene_box.density_scale()) as f64)
-            .min(mean) as f32;
+        let mut thr = (self.config.density_threshold * self.scene_box.density_scale()) as f64;
+        if self.config.cap_at_mean {
+            let mean =
+                self.density.iter().map(|&d| d as f64).sum::<f64>() / self.num_cells() as f64;
+            thr = thr.min(mean);
+        }
+        let thr = thr as f32;
         self.bits.fill(0);
         for (i, &d) in self.density.iter().enumerate() {
             if d > thr {
                 self.bits[i >> 6] |= 1 << (i & 63);
             }
         }
+    }
+
+    /// A copy whose occupied cells are further restricted to estimates above
+    /// `min_density` normalised units (multiples of `SceneBox::density_scale`): the
+    /// render-time grid of a trained model, where thin fog that the training threshold keeps
+    /// is not worth evaluating. `min_density <= 0` returns the grid unchanged.
+    pub fn pruned(&self, min_density: f32) -> Self {
+        let mut g = self.clone();
+        if min_density > 0.0 {
+            let thr = min_density * self.scene_box.density_scale();
+            for (i, &d) in self.density.iter().enumerate() {
+                if d <= thr {
+                    g.bits[i >> 6] &= !(1u64 << (i & 63));
+                }
+            }
+        }
+        g
+    }
+
+    /// Fraction of the cells inside the scene box that are occupied (the part of the grid
+    /// that box-clipped rays see).
+    pub fn occupied_fraction_in_box(&self) -> f32 {
+        let r = self.config.resolution;
+        let (lo, hi) = (r / 4, r - r / 4);
+        let mut n = 0usize;
+        let mut occ = 0usize;
+        for z in lo..hi {
+            for y in lo..hi {
+                for x in lo..hi {
+                    n += 1;
+                    occ += usize::from(self.bit(x + r * (y + r * z)));
+                }
+            }
+        }
+        occ as f32 / n.max(1) as f32
     }
 
     /// Per-cell density estimates (1/m), x fastest, for saving with a model.

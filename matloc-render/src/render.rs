@@ -27,7 +27,14 @@ pub struct RenderOptions {
     pub samples_per_round: usize,
     /// Rays processed together (bounds memory: ~`tile_rays × samples_per_round × 60` floats).
     pub tile_rays: usize,
+    /// Density (1/m) below which a sample contributes nothing (render-time fog filter);
+    /// 0 = every sample counts.
+    pub min_density: f32,
 }
+
+/// Samples whose blending weight is below this get no colour evaluation (their colour
+/// changes a pixel by less than this).
+const COLOUR_MIN_WEIGHT: f32 = 1e-5;
 
 impl Default for RenderOptions {
     fn default() -> Self {
@@ -40,6 +47,7 @@ impl Default for RenderOptions {
             min_transmittance: 1e-4,
             samples_per_round: 16,
             tile_rays: 16_384,
+            min_density: 0.0,
         }
     }
 }
@@ -101,6 +109,7 @@ pub fn render_rays(
         accumulation: vec![0.0; n],
         features: vec![0.0; n * nd],
         num_dims: nd,
+        median: vec![0.0; n],
     };
     for tile_start in (0..n).step_by(opts.tile_rays) {
         let tile_end = (tile_start + opts.tile_rays).min(n);
@@ -128,12 +137,10 @@ pub fn render_rays(
                 break;
             }
             let mut pts = Vec::new();
-            let mut dirs = Vec::new();
             for (j, iv, _) in &batch {
                 let r = tile_start + j;
                 for &(a, b) in iv {
                     pts.push(rays.at(r, 0.5 * (a + b)));
-                    dirs.push(rays.directions[r]);
                 }
             }
             let ns = pts.len();
@@ -142,21 +149,12 @@ pub fn render_rays(
             if ns > 0 {
                 field.density_and_features(&pts, &eval_dims, &mut sigma, &mut feats)?;
             }
-            let mut rgb = Vec::new();
-            if opts.rgb && ns > 0 {
-                let fm: Vec<f32> = feats
-                    .chunks_exact(ne)
-                    .flat_map(|row| fmlp_pos.iter().map(move |&p| row[p]))
-                    .collect();
-                debug_assert_eq!(fm.len(), ns * F_MLP_DIM);
-                rgb = vec![0f32; 3 * ns];
-                field.colour(&fm, &dirs, opts.appearance, &mut rgb)?;
-            }
             // Composite this round (sequential per ray; cheap next to the field queries).
+            let mut weights = vec![0f32; ns];
             let mut k0 = 0;
-            for (j, iv, next) in batch {
+            for (j, iv, next) in &batch {
                 let r = tile_start + j;
-                let s = &mut state[j];
+                let s = &mut state[*j];
                 if iv.is_empty() {
                     s.done = true;
                     continue;
@@ -166,24 +164,56 @@ pub fn render_rays(
                     if s.trans < opts.min_transmittance {
                         break;
                     }
+                    if sigma[k] < opts.min_density {
+                        continue;
+                    }
                     let al = 1.0 - (-sigma[k] * (b - a)).exp();
                     let w = s.trans * al;
+                    weights[k] = w;
+                    if s.trans > 0.5 && s.trans * (1.0 - al) <= 0.5 {
+                        // T(x) = T0·exp(−σx) reaches 0.5 at x = ln(2·T0)/σ.
+                        out.median[r] = a + ((2.0 * s.trans).ln() / sigma[k].max(1e-30)).min(b - a);
+                    }
                     s.trans *= 1.0 - al;
                     out.accumulation[r] += w;
                     out.depth[r] += w * 0.5 * (a + b);
                     for jd in 0..nd {
                         out.features[r * nd + jd] += w * feats[k * ne + jd];
                     }
-                    if opts.rgb {
-                        for ch in 0..3 {
-                            out.rgb[3 * r + ch] += w * rgb[3 * k + ch];
-                        }
-                    }
                 }
                 k0 += iv.len();
-                s.step = next;
-                if s.trans < opts.min_transmittance || next >= total_steps(&opts.march) {
+                s.step = *next;
+                if s.trans < opts.min_transmittance || *next >= total_steps(&opts.march) {
                     s.done = true;
+                }
+            }
+            if opts.rgb && ns > 0 {
+                // Colour only where it is visible.
+                let (mut ks, mut rs) = (Vec::new(), Vec::new());
+                let mut k0 = 0;
+                for (j, iv, _) in &batch {
+                    for k in k0..k0 + iv.len() {
+                        if weights[k] >= COLOUR_MIN_WEIGHT {
+                            ks.push(k);
+                            rs.push(tile_start + j);
+                        }
+                    }
+                    k0 += iv.len();
+                }
+                if !ks.is_empty() {
+                    let mut fm = Vec::with_capacity(ks.len() * F_MLP_DIM);
+                    let mut cd = Vec::with_capacity(ks.len());
+                    for (&k, &r) in ks.iter().zip(&rs) {
+                        fm.extend(fmlp_pos.iter().map(|&p| feats[k * ne + p]));
+                        cd.push(rays.directions[r]);
+                    }
+                    let mut rgb = vec![0f32; 3 * ks.len()];
+                    field.colour(&fm, &cd, opts.appearance, &mut rgb)?;
+                    for (q, (&k, &r)) in ks.iter().zip(&rs).enumerate() {
+                        for ch in 0..3 {
+                            out.rgb[3 * r + ch] += weights[k] * rgb[3 * q + ch];
+                        }
+                    }
                 }
             }
         }

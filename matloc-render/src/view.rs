@@ -5,7 +5,7 @@ use matloc_nerf_field::FEATURE_DIM;
 use nalgebra::{Isometry3, Point2};
 
 use crate::error::RenderError;
-use crate::model::NerfModel;
+use crate::model::{DepthKind, NerfModel};
 use crate::rays::RayBatch;
 use crate::render::{RenderOptions, render_rays};
 
@@ -233,8 +233,9 @@ pub fn render_view(
         min_transmittance: cfg.render.min_transmittance,
         samples_per_round: cfg.render.samples_per_round,
         tile_rays: cfg.render.tile_rays,
+        min_density: cfg.render.min_density * model.field().density_scale(),
     };
-    let out = render_rays(model.field(), &rays, Some(model.grid()), &opts)?;
+    let out = render_rays(model.field(), &rays, Some(model.render_grid()), &opts)?;
     let n = pixels.len();
     let nd = request.dims.len();
     let mut distance = vec![0f32; n];
@@ -253,7 +254,10 @@ pub fn render_view(
         }
         let a = accumulation[i];
         if a > 1e-4 {
-            distance[i] = out.depth[i] / a;
+            distance[i] = match cfg.render.depth {
+                DepthKind::Median if out.median[i] > 0.0 => out.median[i],
+                _ => out.depth[i] / a,
+            };
             z_depth[i] = distance[i] * cos_axis[i];
         }
     }

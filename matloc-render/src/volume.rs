@@ -23,6 +23,10 @@ pub struct RenderedRays {
     pub features: Vec<f32>,
     /// Feature dims per ray in `features`.
     pub num_dims: usize,
+    /// Median distance: where the transmittance falls to 0.5 (exact for piecewise-constant
+    /// density), 0 where it never does; filled by [`crate::render_rays`] only (empty
+    /// elsewhere).
+    pub median: Vec<f32>,
 }
 
 impl RenderedRays {
@@ -118,6 +122,7 @@ pub fn volume_render(
         accumulation: vec![0.0; n],
         features: vec![0.0; n * nd],
         num_dims: nd,
+        median: Vec::new(),
     };
     let rgb_chunks: Vec<&mut [f32]> = if has_rgb {
         out.rgb.chunks_mut(3 * RAY_GROUP).collect()
