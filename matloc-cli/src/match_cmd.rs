@@ -22,7 +22,9 @@ use matloc_match::gt::{
 };
 use matloc_match::localize::{correct_matches, render_map_points, solve_pose, timed_match};
 use matloc_match::synth_view::{SynthFeatureField, SynthFeatureRenderer, SynthFieldConfig};
-use matloc_match::{FeatureStats, MnnConfig, MnnMatcher, QueryFeatures};
+use matloc_match::{
+    FeatureStats, MnnConfig, MnnMatcher, QueryFeatures, SubcellConfig, SubcellSide,
+};
 use matloc_pnp::LoRansacPnp;
 use matloc_select::{FeatureSelector, MatchingSelector, PairSet, PaperBipSelector, RandomSelector};
 use rand::SeedableRng;
@@ -103,9 +105,40 @@ struct EvalArgs {
     /// Perturbed starts per test view.
     #[arg(long, default_value_t = 3)]
     starts: usize,
+    /// Sub-cell refinement of the matches (`matloc_match::subcell`).
+    #[arg(long, value_enum, default_value = "map")]
+    subcell: SubcellArg,
     /// Write the table as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum SubcellArg {
+    /// Move the 3D point (rendered neighbours; the matcher's default).
+    Map,
+    /// Move the query pixel (query neighbours).
+    Query,
+    /// No refinement (cell centres).
+    Off,
+}
+
+impl SubcellArg {
+    fn side(self) -> SubcellSide {
+        match self {
+            SubcellArg::Map => SubcellSide::Map,
+            SubcellArg::Query => SubcellSide::Query,
+            SubcellArg::Off => SubcellSide::Off,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            SubcellArg::Map => "map",
+            SubcellArg::Query => "query",
+            SubcellArg::Off => "off",
+        }
+    }
 }
 
 struct Scene {
@@ -370,6 +403,10 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     };
     let matcher = MnnMatcher::new(MnnConfig {
         stats: Some(stats.clone()),
+        subcell: SubcellConfig {
+            side: args.subcell.side(),
+            ..Default::default()
+        },
         ..Default::default()
     });
     let solver = LoRansacPnp::default();
@@ -433,13 +470,14 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     let med = |v: &[f64]| median(v).unwrap_or(f64::NAN);
     let cam: &Camera = &sc.test[0].camera;
     println!(
-        "queries: {} test views x {} starts; query {}x{} px, grid {}x{}; start perturbation uniform ball {} m / {} deg (median start error {:.2} m / {:.2} deg)",
+        "queries: {} test views x {} starts; query {}x{} px, grid {}x{}; sub-cell refinement {}; start perturbation uniform ball {} m / {} deg (median start error {:.2} m / {:.2} deg)",
         sc.test.len(),
         args.starts,
         cam.width,
         cam.height,
         cam.width / ENCODER_STRIDE,
         cam.height / ENCODER_STRIDE,
+        args.subcell.name(),
         args.query_translation_m,
         args.query_rotation_deg,
         med(&start_t),
@@ -475,6 +513,7 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
         let doc = serde_json::json!({
             "preset": args.scene.preset, "seed": args.scene.seed,
             "query_source": match args.query { QuerySource::Oracle => "oracle", QuerySource::Encoder => "encoder" },
+            "subcell": args.subcell.name(),
             "start_t_median_m": med(&start_t), "start_r_median_deg": med(&start_r),
             "rows": json,
         });
