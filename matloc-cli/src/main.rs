@@ -2,6 +2,10 @@
 //! and prints reports; all work happens in the library crates.
 
 mod dataset_cmd;
+mod demo_cmd;
+mod eval_cmd;
+mod localize_cmd;
+mod map_cmd;
 mod match_cmd;
 mod nerf_cmd;
 mod partition_cmd;
@@ -59,6 +63,17 @@ enum Command {
     },
     /// Ground-truth 2D-3D pairs, and the Table 3 evaluation of matching with selected features.
     Match(match_cmd::MatchArgs),
+    /// Build a map (all stages, resumable) or summarise one.
+    Map {
+        #[command(subcommand)]
+        command: map_cmd::MapCommand,
+    },
+    /// Localize query images against a map (one JSON line per query).
+    Localize(localize_cmd::LocalizeArgs),
+    /// Localize a dataset's test views with each method; write a report with tables and plots.
+    Eval(eval_cmd::EvalArgs),
+    /// Synthesise the `small` world, build its map, evaluate every method, write the report.
+    Demo(demo_cmd::DemoArgs),
 }
 
 #[derive(Subcommand)]
@@ -84,6 +99,12 @@ fn main() -> ExitCode {
         Command::Partition(args) => partition_cmd::run(&args, cli.quiet),
         Command::Place { command } => place_cmd::run(&command, cli.quiet),
         Command::Match(args) => match_cmd::run(&args, cli.quiet),
+        Command::Map { command } => map_cmd::run(&command, cli.quiet),
+        Command::Localize(args) => localize_cmd::run(&args),
+        Command::Eval(args) => eval_cmd::run(&args, cli.quiet).map(|p| {
+            println!("report: {}", p.display());
+        }),
+        Command::Demo(args) => demo_cmd::run(&args, cli.quiet),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -31,6 +31,9 @@ pub struct NerfStageConfig {
     pub checkpoint_every: u64,
     /// Integer image downscale for training.
     pub downscale: u32,
+    /// Changes to the model config derived from the dataset, as a JSON object merged into it
+    /// (e.g. `{"field": {"log2_table_size": 15}, "train": {"batch_rays": 1024}}`).
+    pub model_overrides: serde_json::Value,
 }
 
 impl Default for NerfStageConfig {
@@ -39,8 +42,37 @@ impl Default for NerfStageConfig {
             steps: 3000,
             checkpoint_every: 500,
             downscale: 1,
+            model_overrides: serde_json::Value::Null,
         }
     }
+}
+
+/// Deep-merges `patch` into `base` (objects merge key by key; anything else replaces).
+fn merge_json(base: &mut serde_json::Value, patch: &serde_json::Value) {
+    match (base, patch) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
+            for (k, v) in p {
+                merge_json(b.entry(k.clone()).or_insert(serde_json::Value::Null), v);
+            }
+        }
+        (_, serde_json::Value::Null) => {}
+        (b, p) => *b = p.clone(),
+    }
+}
+
+/// The sub-NeRF config of a block dataset: derived from the data, then the overrides.
+pub fn block_model_config(
+    dataset: &Dataset,
+    nerf: &NerfStageConfig,
+) -> Result<matloc_render::ModelConfig, PipelineError> {
+    let base = config_for_dataset(dataset, nerf.steps);
+    if nerf.model_overrides.is_null() {
+        return Ok(base);
+    }
+    let mut v = serde_json::to_value(&base).map_err(|e| PipelineError::Config(e.to_string()))?;
+    merge_json(&mut v, &nerf.model_overrides);
+    serde_json::from_value(v)
+        .map_err(|e| PipelineError::Config(format!("nerf.model_overrides: {e}")))
 }
 
 /// Everything that defines a map build. Stored in the manifest; resuming a build requires the
@@ -54,6 +86,19 @@ pub struct MapConfig {
     pub partition: PoseAwareConfig,
     /// Sub-NeRF training.
     pub nerf: NerfStageConfig,
+    /// Ground-truth pairs per block.
+    pub pairs: crate::stages::PairStageConfig,
+    /// Query encoder per block.
+    pub encoder: crate::stages::EncoderStageConfig,
+    /// Feature selection per block.
+    pub select: crate::stages::SelectStageConfig,
+    /// Pose groups and the place classifier.
+    pub place: crate::stages::PlaceStageConfig,
+    /// Held-out views and the confidence calibration.
+    pub calibration: crate::stages::CalibrationConfig,
+    /// Localizer settings stored with the map (the confidence model is replaced by the
+    /// calibrated one when the map is loaded).
+    pub localize: crate::localizer::LocalizeOptions,
 }
 
 /// A progress event of [`build_map`].
@@ -144,6 +189,7 @@ pub fn build_map(
             "bounds_max": dataset.metadata.bounds_max,
             "train_frames": dataset.split(Split::Train).count(),
             "test_frames": dataset.split(Split::Test).count(),
+            "camera": dataset.split(Split::Train).next().map(|f| f.camera),
             "conventions": "cam_from_world, OpenCV camera axes, metres",
         });
         map.save()?;
@@ -220,7 +266,7 @@ pub fn build_map(
             total: config.nerf.steps,
         });
         let sub = block_dataset(dataset, &partition, b);
-        let model_config = config_for_dataset(&sub, config.nerf.steps);
+        let model_config = block_model_config(&sub, &config.nerf)?;
         let dir = map.path_of(&block_dir(b))?;
         std::fs::create_dir_all(&dir).map_err(|e| PipelineError::Io {
             path: dir.clone(),
@@ -262,5 +308,6 @@ pub fn build_map(
             skipped: false,
         });
     }
+    crate::stages::run_after_nerf(dataset, &partition, &mut map, config, progress)?;
     Ok(map)
 }

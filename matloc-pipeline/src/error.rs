@@ -60,6 +60,16 @@ pub enum PipelineError {
     /// The partition stage failed.
     #[error("partition: {0}")]
     Partition(String),
+    /// The map's build did not finish this stage (resume it with `matloc map build`).
+    #[error(
+        "map {root} is incomplete: stage {stage} has not finished (run the build again to resume)"
+    )]
+    Incomplete {
+        /// Map root.
+        root: std::path::PathBuf,
+        /// First unfinished stage.
+        stage: String,
+    },
     /// A broken internal invariant (a bug, reported instead of panicking).
     #[error("internal error: {0}")]
     Internal(&'static str),

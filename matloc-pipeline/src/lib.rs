@@ -5,7 +5,8 @@
 //!   written atomically, validated on load.
 //! - [`localizer`]: the MatLoc [`Localizer`] over the stage traits, with top-k fallback,
 //!   iterative refinement and refusal.
-//! - [`build`]: map building stage by stage, resumable.
+//! - [`build`], [`stages`]: map building stage by stage, resumable, and [`stages::LoadedMap`],
+//!   a built map loaded and validated.
 //! - [`baselines`]: rendered-RGB + keypoints, iNeRF and curriculum iNeRF from the same coarse
 //!   poses and map as MatLoc.
 //! - [`confidence`]: calibrated P(correct | inliers, inlier ratio, matches) and the refusal
@@ -24,6 +25,8 @@ mod error;
 pub mod eval;
 pub mod localizer;
 pub mod manifest;
+pub mod methods;
+pub mod stages;
 
 pub use error::PipelineError;
 pub use eval::{

@@ -38,11 +38,18 @@ pub trait QueryFeatureEncoder: Send + Sync {
     fn encode(&self, image: &Image<f32>) -> Result<matloc_core::FeatureMap, PipelineError>;
 }
 
-/// One sub-NeRF block as the localizer sees it: its renderer and the dims selected for its
-/// region.
+/// One sub-NeRF block as the localizer sees it: its renderer, the query encoder into its
+/// feature space, its matcher and the dims selected for its region.
+///
+/// Each sub-NeRF has its own hash grid, so its intermediate features live in their own space:
+/// the encoder (and the matcher's feature statistics) belong to the block, not to the map.
 pub struct LocalizerBlock<'a> {
     /// Renders features + depth of the block.
     pub renderer: &'a dyn ViewRenderer,
+    /// Query image → this block's feature domain.
+    pub encoder: &'a dyn QueryFeatureEncoder,
+    /// 2D–3D matcher (with this block's feature normalisation).
+    pub matcher: &'a dyn Matcher,
     /// Field dims matched in this block's region (a subset of the encoder's dims).
     pub dims: Vec<usize>,
 }
@@ -137,12 +144,8 @@ pub struct Localization {
 pub struct Localizer<'a> {
     /// Coarse poses: top-k pose groups with the block serving each.
     pub place: &'a dyn PlacePredictor,
-    /// Query image → NeRF feature domain.
-    pub encoder: &'a dyn QueryFeatureEncoder,
     /// Sub-NeRF blocks, indexed by block id.
     pub blocks: Vec<LocalizerBlock<'a>>,
-    /// 2D–3D matcher.
-    pub matcher: &'a dyn Matcher,
     /// Pose solver.
     pub solver: &'a dyn PoseSolver,
     /// Settings.
@@ -172,8 +175,9 @@ struct Pass {
 
 impl Localizer<'_> {
     /// Channel indices of `dims` in the encoder's output.
-    fn channels_of(&self, dims: &[usize]) -> Result<Vec<usize>, PipelineError> {
-        let enc = self.encoder.dims();
+    fn channels_of(block: &LocalizerBlock<'_>) -> Result<Vec<usize>, PipelineError> {
+        let enc = block.encoder.dims();
+        let dims = &block.dims;
         dims.iter()
             .map(|d| {
                 enc.iter()
@@ -197,14 +201,14 @@ impl Localizer<'_> {
             block.renderer,
             camera,
             cam_from_world,
-            self.encoder.stride(),
+            block.encoder.stride(),
             &block.dims,
             self.options.min_accumulation,
         )
         .map_err(localize_err)?;
         clock.add("render", t);
         let t = Instant::now();
-        let matches = match self.matcher.match_features(query, &points, None) {
+        let matches = match block.matcher.match_features(query, &points, None) {
             Ok(m) => m,
             Err(matloc_match::MatchError::Empty { .. }) => Vec::new(),
             Err(e) => return Err(PipelineError::Match(e)),
@@ -262,10 +266,8 @@ impl Localizer<'_> {
             .map_err(|e| PipelineError::Place(e.to_string()))?;
         clock.add("place", t);
 
-        let t = Instant::now();
-        let encoded = self.encoder.encode(image)?;
-        clock.add("encode", t);
-        let stride = self.encoder.stride() as f64;
+        // Encoded query per block, computed when a hypothesis first needs that block.
+        let mut encoded: Vec<Option<matloc_core::FeatureMap>> = vec![None; self.blocks.len()];
 
         let mut reports = Vec::new();
         let mut best: Option<(f64, usize, Pose)> = None;
@@ -289,8 +291,19 @@ impl Localizer<'_> {
                 reports.push(report);
                 continue;
             };
-            let channels = self.channels_of(&block.dims)?;
-            let query = QueryFeatures::new(encoded.select_channels(&channels), stride);
+            let channels = Self::channels_of(block)?;
+            if encoded[block_id].is_none() {
+                let t = Instant::now();
+                encoded[block_id] = Some(block.encoder.encode(image)?);
+                clock.add("encode", t);
+            }
+            let map = encoded[block_id]
+                .as_ref()
+                .ok_or(PipelineError::Internal("query not encoded"))?;
+            let query = QueryFeatures::new(
+                map.select_channels(&channels),
+                block.encoder.stride() as f64,
+            );
             let mut pose = hyp.cam_from_world;
             let mut confidence = 0.0;
             for pass_index in 0..self.options.max_passes.max(1) {

@@ -128,12 +128,12 @@ fn run(
     let solver = LoRansacPnp::default();
     let localizer = Localizer {
         place: &place,
-        encoder: &encoder,
         blocks: vec![LocalizerBlock {
             renderer: &s.renderer,
+            encoder: &encoder,
+            matcher: &matcher,
             dims: dims[..12].to_vec(),
         }],
-        matcher: &matcher,
         solver: &solver,
         options,
     };
@@ -244,12 +244,12 @@ fn wrong_image_size_is_a_typed_error() {
     let solver = LoRansacPnp::default();
     let localizer = Localizer {
         place: &place,
-        encoder: &encoder,
         blocks: vec![LocalizerBlock {
             renderer: &s.renderer,
+            encoder: &encoder,
+            matcher: &matcher,
             dims: vec![40], // not produced by the encoder
         }],
-        matcher: &matcher,
         solver: &solver,
         options: LocalizeOptions::default(),
     };

@@ -1,0 +1,89 @@
+//! `matloc demo`: synthesise the `small` world, build its map, localize the test queries with
+//! every method and write the report. Every step resumes: running the demo again after an
+//! interruption continues where it stopped.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use matloc_pipeline::build::MapConfig;
+use matloc_pipeline::methods::Method;
+
+use crate::eval_cmd::{self, EvalArgs};
+use crate::{map_cmd, synth_cmd};
+
+/// Arguments of `matloc demo`.
+#[derive(Args)]
+pub struct DemoArgs {
+    /// Working directory (dataset, map, report).
+    #[arg(long, default_value = "demo")]
+    out: PathBuf,
+    /// Synthetic preset.
+    #[arg(long, default_value = "small")]
+    preset: String,
+    /// Map build configuration (JSON) instead of the demo's.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Test queries for the iNeRF baselines (they take tens of seconds each on the CPU).
+    #[arg(long, default_value_t = 8)]
+    inerf_queries: usize,
+}
+
+/// The demo's map configuration: sized so synthesis + build + evaluation of `small` fit in
+/// about 20 minutes on 2 cores.
+pub fn demo_config() -> MapConfig {
+    let mut c = MapConfig::default();
+    c.nerf.steps = 1000;
+    c.nerf.checkpoint_every = 250;
+    c.encoder.train.steps = 300;
+    c.place.train.epochs = 30;
+    c
+}
+
+/// Runs the demo.
+pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
+    let t0 = Instant::now();
+    let data = args.out.join("data");
+    let map = args.out.join("map");
+    let report = args.out.join("report");
+    if matloc_data::read_dataset(&data).is_ok() {
+        println!("[1/3] dataset {} exists, reusing it", data.display());
+    } else {
+        println!(
+            "[1/3] synthesising preset `{}` into {}",
+            args.preset,
+            data.display()
+        );
+        synth_cmd::run(&args.preset, &data, None, quiet)?;
+    }
+    let config = match &args.config {
+        Some(p) => map_cmd::read_config(p)?,
+        None => demo_config(),
+    };
+    println!("[2/3] building the map in {}", map.display());
+    map_cmd::build(&data, &map, &config, quiet).context("map build")?;
+    println!("[3/3] localizing the test queries with every method");
+    let path = eval_cmd::run(
+        &EvalArgs {
+            map,
+            data,
+            methods: Method::ALL.to_vec(),
+            queries: 0,
+            inerf_queries: args.inerf_queries,
+            out: report,
+        },
+        quiet,
+    )?;
+    let text = std::fs::read_to_string(&path).unwrap_or_default();
+    if let Some(i) = text.find("## Table 1") {
+        let end = text.find("## Plots").unwrap_or(text.len());
+        println!("\n{}", text[i..end].trim_end());
+    }
+    println!(
+        "\ndemo finished in {:.1} min; report: {}",
+        t0.elapsed().as_secs_f64() / 60.0,
+        path.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,198 @@
+//! `matloc map build|info`: build (or resume) a map, summarise one.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::ProgressBar;
+use matloc_pipeline::MapDir;
+use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
+use matloc_pipeline::stages::{SelectionRecord, required_stages, selection_file};
+
+use crate::progress;
+
+/// `matloc map ...`
+#[derive(Subcommand)]
+pub enum MapCommand {
+    /// Build a map: partition, sub-NeRFs, GT pairs, encoders, selection, place, calibration.
+    /// A killed build resumes where it stopped when run again with the same config.
+    Build(BuildArgs),
+    /// Summarise a map: blocks, sizes, selected dims, stage times.
+    Info {
+        /// Map directory.
+        map: PathBuf,
+        /// Print the manifest summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// Arguments of `matloc map build`.
+#[derive(Args)]
+pub struct BuildArgs {
+    /// Dataset directory (nerfstudio transforms.json or COLMAP model).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Output map directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Build configuration (JSON; missing fields take their defaults).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Override the sub-NeRF training steps per block.
+    #[arg(long)]
+    pub nerf_steps: Option<u64>,
+}
+
+/// Runs `matloc map ...`.
+pub fn run(cmd: &MapCommand, quiet: bool) -> Result<()> {
+    match cmd {
+        MapCommand::Build(a) => {
+            let mut config = match &a.config {
+                Some(p) => read_config(p)?,
+                None => MapConfig::default(),
+            };
+            if let Some(s) = a.nerf_steps {
+                config.nerf.steps = s;
+            }
+            build(&a.data, &a.out, &config, quiet)
+        }
+        MapCommand::Info { map, json } => info(map, *json),
+    }
+}
+
+/// Reads a map config file.
+pub fn read_config(path: &Path) -> Result<MapConfig> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing map config {}", path.display()))
+}
+
+/// Builds (or resumes) a map with progress bars per stage.
+pub fn build(data: &Path, out: &Path, config: &MapConfig, quiet: bool) -> Result<()> {
+    let dataset = matloc_data::read_dataset(data)
+        .with_context(|| format!("reading dataset {}", data.display()))?;
+    let t0 = Instant::now();
+    let mut bar: Option<ProgressBar> = None;
+    let mut on_event = |e: &BuildEvent| match e {
+        BuildEvent::StageStarted { name, total } => {
+            let b = progress::bar(*total, name, quiet);
+            bar = Some(b);
+        }
+        BuildEvent::StageProgress { done, message } => {
+            if let Some(b) = &bar {
+                b.set_position(*done);
+                b.set_message(message.clone());
+            }
+        }
+        BuildEvent::StageFinished {
+            name,
+            seconds,
+            skipped,
+        } => {
+            if let Some(b) = bar.take() {
+                b.finish_and_clear();
+            }
+            if *skipped {
+                println!("{name:<14} done earlier");
+            } else {
+                println!("{name:<14} {seconds:>8.1} s");
+            }
+        }
+    };
+    let map = build_map(&dataset, out, config, &mut on_event)
+        .with_context(|| format!("building map {}", out.display()))?;
+    println!(
+        "map {} complete in {:.1} s ({} blocks, {:.1} MB)",
+        out.display(),
+        t0.elapsed().as_secs_f64(),
+        map.manifest().blocks.len(),
+        map.total_bytes() as f64 / 1e6
+    );
+    Ok(())
+}
+
+fn info(root: &Path, json: bool) -> Result<()> {
+    let map = MapDir::open(root).with_context(|| format!("opening map {}", root.display()))?;
+    let m = map.manifest();
+    let missing: Vec<String> = required_stages(m.blocks.len())
+        .into_iter()
+        .filter(|s| !map.stage_done(s))
+        .collect();
+    let verified = map.verify().map(|_| ()).map_err(|e| e.to_string());
+    let selections: Vec<Option<SelectionRecord>> = (0..m.blocks.len())
+        .map(|b| map.read_json(&selection_file(b)).ok())
+        .collect();
+    if json {
+        let doc = serde_json::json!({
+            "map": root.display().to_string(),
+            "version": m.version,
+            "created_by": m.created_by,
+            "scene": m.scene,
+            "blocks": m.blocks,
+            "selections": selections,
+            "stages": m.stages,
+            "missing_stages": missing,
+            "files": m.files.len(),
+            "bytes": map.total_bytes(),
+            "checksums": match &verified { Ok(()) => "ok".to_string(), Err(e) => e.clone() },
+        });
+        println!("{}", serde_json::to_string_pretty(&doc)?);
+        return Ok(());
+    }
+    println!(
+        "map {} (format v{}, {})",
+        root.display(),
+        m.version,
+        m.created_by
+    );
+    if let Some(d) = m.scene.get("dataset") {
+        println!("  dataset      {}", d.as_str().unwrap_or("?"));
+    }
+    println!(
+        "  files        {} ({:.1} MB), checksums {}",
+        m.files.len(),
+        map.total_bytes() as f64 / 1e6,
+        match &verified {
+            Ok(()) => "ok".to_string(),
+            Err(e) => format!("FAILED: {e}"),
+        }
+    );
+    println!(
+        "  status       {}",
+        if missing.is_empty() {
+            "complete".to_string()
+        } else {
+            format!("incomplete, next stage {}", missing[0])
+        }
+    );
+    println!("  blocks:");
+    for (b, e) in m.blocks.iter().enumerate() {
+        let bytes: u64 = m
+            .files
+            .iter()
+            .filter(|(k, _)| k.starts_with(&format!("blocks/{b}/")))
+            .map(|(_, f)| f.bytes)
+            .sum();
+        let ext = [
+            e.bounds_max[0] - e.bounds_min[0],
+            e.bounds_max[1] - e.bounds_min[1],
+            e.bounds_max[2] - e.bounds_min[2],
+        ];
+        println!(
+            "    {b}: {} poses, box {:.0}×{:.0}×{:.0} m, {:.1} MB, selected dims {:?}",
+            e.num_poses,
+            ext[0],
+            ext[1],
+            ext[2],
+            bytes as f64 / 1e6,
+            e.selected_dims
+        );
+    }
+    println!("  stages:");
+    for s in &m.stages {
+        println!("    {:<14} {:>8.1} s", s.name, s.seconds);
+    }
+    Ok(())
+}

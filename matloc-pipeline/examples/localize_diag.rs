@@ -1,0 +1,130 @@
+//! Diagnostics of a built map on a dataset's test views: for each query, the place
+//! classifier's coarse pose error and what matching + PnP make of it, next to the same from
+//! the true pose (an upper bound: a perfect place stage).
+//!
+//!     cargo run --release -p matloc-pipeline --example localize_diag -- MAP DATA
+
+use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_data::{Split, read_dataset};
+use matloc_pipeline::stages::{FixedPlace, LoadedMap};
+use matloc_place::{PlaceHypothesis, PlacePredictor};
+use matloc_pnp::LoRansacPnp;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if args.len() < 3 {
+        eprintln!("usage: localize_diag MAP DATA");
+        std::process::exit(2);
+    }
+    let mut map = LoadedMap::open(std::path::Path::new(&args[1])).expect("map");
+    // DIAG_DIMS=all|a,b,c overrides the selected dims of every block.
+    if let Ok(v) = std::env::var("DIAG_DIMS") {
+        for b in &mut map.blocks.0 {
+            let dims: Vec<usize> = if v == "all" {
+                (0..47).collect()
+            } else {
+                v.split(',').map(|x| x.parse().expect("dim")).collect()
+            };
+            let full = b.encoder.stats().clone();
+            let stats = matloc_match::FeatureStats {
+                mean: dims.iter().map(|&d| full.mean[d]).collect(),
+                std: dims.iter().map(|&d| full.std[d]).collect(),
+            };
+            b.matcher = matloc_match::MnnMatcher::new(matloc_match::MnnConfig {
+                stats: Some(stats),
+                ..Default::default()
+            });
+            b.dims = dims;
+        }
+    }
+    let dataset = read_dataset(std::path::Path::new(&args[2])).expect("dataset");
+    let solver = LoRansacPnp::default();
+    println!(
+        "query | coarse err (m, deg) | est err (m, deg) | matches inliers conf | from truth: est err | matches inliers conf"
+    );
+    for f in dataset.split(Split::Test) {
+        let (image, camera) = matloc_data::images::load_frame_image(&dataset, f, 1).expect("image");
+        let hyps = map.place.predict(&image, &camera, 1).expect("place");
+        let h = hyps[0].clone();
+        let mut options = map.options();
+        options.confidence.accept_threshold = 0.0;
+        options.top_k = 1;
+        let run = |h: PlaceHypothesis| {
+            let fixed = FixedPlace(vec![h]);
+            let loc = map.blocks.localizer(&fixed, &solver, options.clone());
+            let out = loc.localize(&image, &camera).expect("localize");
+            let rep = out.hypotheses[0].clone();
+            let err = out.cam_from_world.map(|p| {
+                (
+                    translation_error_m(&p, &f.cam_from_world),
+                    rotation_error_deg(&p, &f.cam_from_world),
+                )
+            });
+            (err, rep)
+        };
+        let coarse = (
+            translation_error_m(&h.cam_from_world, &f.cam_from_world),
+            rotation_error_deg(&h.cam_from_world, &f.cam_from_world),
+        );
+        let (e1, r1) = run(h.clone());
+        let truth = PlaceHypothesis {
+            cam_from_world: f.cam_from_world,
+            ..h
+        };
+        let (e2, r2) = run(truth);
+        // Encoder fit at the true pose: correlation of encoder vs rendered features per
+        // selected dim over surface cells.
+        let blk = &map.blocks.0[0];
+        let all: Vec<usize> = (0..47).collect();
+        let target = matloc_match::gt::ViewRenderer::render_view(
+            &blk.renderer,
+            &camera,
+            &f.cam_from_world,
+            4,
+            &all,
+        )
+        .expect("render");
+        let enc = blk.encoder.encode(&image).expect("encode");
+        let mut corr = Vec::new();
+        for &d in &blk.dims {
+            let (mut xs, mut ys) = (Vec::new(), Vec::new());
+            for i in 0..target.cols * target.rows {
+                if target.accumulation[i] > 0.5 {
+                    xs.push(target.features[i * 47 + d] as f64);
+                    ys.push(enc.pixel(i % target.cols, i / target.cols)[d] as f64);
+                }
+            }
+            let n = xs.len() as f64;
+            let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+            let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+            for (x, y) in xs.iter().zip(&ys) {
+                sxy += (x - mx) * (y - my);
+                sxx += (x - mx) * (x - mx);
+                syy += (y - my) * (y - my);
+            }
+            corr.push(sxy / (sxx * syy).sqrt().max(1e-12));
+        }
+        println!(
+            "  encoder corr per selected dim {:?}",
+            corr.iter().map(|c| format!("{c:.2}")).collect::<Vec<_>>()
+        );
+        let fmt = |e: Option<(f64, f64)>| {
+            e.map_or("-".to_string(), |e| format!("{:.2} m {:.2}°", e.0, e.1))
+        };
+        println!(
+            "{} | {:.1} m {:.1}° | {} | {} {} {:.2} | {} | {} {} {:.2} {}",
+            f.image_path.display(),
+            coarse.0,
+            coarse.1,
+            fmt(e1),
+            r1.matches,
+            r1.inliers,
+            r1.confidence,
+            fmt(e2),
+            r2.matches,
+            r2.inliers,
+            r2.confidence,
+            r2.failure.unwrap_or_default()
+        );
+    }
+}

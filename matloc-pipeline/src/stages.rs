@@ -1,0 +1,793 @@
+//! The map-build stages after the sub-NeRFs: ground-truth pairs → query encoder → feature
+//! selection (each per block) → pose groups and place classifier → confidence calibration.
+//!
+//! Every sub-NeRF has its own hash grid, so its intermediate features live in their own space:
+//! pairs, encoder, feature statistics and the selected dims are therefore per block. Every
+//! `holdout_every`-th training view of a block is kept out of the pairs and the encoder (not out
+//! of the NeRF, which is the map) and serves to calibrate the confidence on views the learned
+//! stages have not seen.
+
+use std::path::Path;
+use std::time::Instant;
+
+use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_core::{Camera, FeatureMap, Image};
+use matloc_data::{Dataset, Split};
+use matloc_match::encoder::{
+    ENCODER_STRIDE, EncoderSample, EncoderTrainConfig, QueryEncoder, train_encoder,
+};
+use matloc_match::gt::{
+    GtConfig, GtPairSet, PerturbKind, Perturbation, TrainingView, ViewRenderer, generate_pairs,
+};
+use matloc_match::nerf_view::NerfViewRenderer;
+use matloc_match::{FeatureStats, MnnConfig, MnnMatcher};
+use matloc_partition::Partition;
+use matloc_place::{
+    GroupConfig, PlaceHypothesis, PlaceMethod, PlaceModel, PlacePredictor, PoseGroups, TrainConfig,
+    view_point_from_depth,
+};
+use matloc_pnp::LoRansacPnp;
+use matloc_render::NerfModel;
+use matloc_select::{FeatureSelector, MatchingSelector, PairSet};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::build::{BuildEvent, MapConfig, block_dir};
+use crate::confidence::{ConfidenceModel, Evidence};
+use crate::error::PipelineError;
+use crate::localizer::{LocalizeOptions, Localizer, LocalizerBlock};
+use crate::manifest::MapDir;
+
+/// Ground-truth pair generation per block.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PairStageConfig {
+    /// Training views per block used for pairs (evenly spaced; held-out views excluded).
+    pub views_per_block: usize,
+    /// Coarse-pose error model the pairs cover (the place predictor's medoid poses are a few
+    /// metres and degrees off).
+    pub perturbation: Perturbation,
+    /// Perturbed renders per view.
+    pub perturbations_per_view: usize,
+}
+
+impl Default for PairStageConfig {
+    fn default() -> Self {
+        Self {
+            views_per_block: 16,
+            perturbation: Perturbation {
+                kind: PerturbKind::UniformBall,
+                translation_m: 3.0,
+                rotation_deg: 5.0,
+            },
+            perturbations_per_view: 1,
+        }
+    }
+}
+
+/// Query encoder training per block.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct EncoderStageConfig {
+    /// Training views per block (evenly spaced; held-out views excluded).
+    pub views_per_block: usize,
+    /// Network and optimiser settings.
+    pub train: EncoderTrainConfig,
+}
+
+impl Default for EncoderStageConfig {
+    fn default() -> Self {
+        Self {
+            views_per_block: 48,
+            train: EncoderTrainConfig::default(),
+        }
+    }
+}
+
+/// Feature selection per block.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SelectStageConfig {
+    /// Dims to select (N_s).
+    pub dims: usize,
+}
+
+impl Default for SelectStageConfig {
+    fn default() -> Self {
+        Self { dims: 5 }
+    }
+}
+
+/// Pose groups and the place classifier.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PlaceStageConfig {
+    /// Two-stage K-means settings.
+    pub groups: GroupConfig,
+    /// ArcFace classifier training.
+    pub train: TrainConfig,
+}
+
+/// Held-out views and confidence calibration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct CalibrationConfig {
+    /// Every n-th training view of a block is held out of pairs and encoder (0 = none).
+    pub holdout_every: usize,
+    /// At most this many held-out views are localized for calibration.
+    pub max_views: usize,
+    /// Place hypotheses per view, each localized on its own (wrong places give the negatives).
+    pub hypotheses_per_view: usize,
+    /// A pose within this translation error counts as correct, metres ...
+    pub correct_translation_m: f64,
+    /// ... and within this rotation error, degrees.
+    pub correct_rotation_deg: f64,
+    /// Refusal threshold on the calibrated probability.
+    pub accept_threshold: f64,
+}
+
+impl Default for CalibrationConfig {
+    fn default() -> Self {
+        Self {
+            holdout_every: 8,
+            max_views: 24,
+            hypotheses_per_view: 3,
+            correct_translation_m: 1.0,
+            correct_rotation_deg: 5.0,
+            accept_threshold: 0.5,
+        }
+    }
+}
+
+/// What calibration saw, stored next to the fitted model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationRecord {
+    /// The fitted model.
+    pub model: ConfidenceModel,
+    /// Samples: evidence, label, translation and rotation error of the attempt (∞ = no pose).
+    pub samples: Vec<(Evidence, bool, f64, f64)>,
+    /// Fraction of samples the fitted rule classifies correctly.
+    pub accuracy: f64,
+}
+
+/// Name of the place model directory inside the map.
+pub const PLACE_DIR: &str = "place";
+/// Name of the calibration record inside the map.
+pub const CONFIDENCE_FILE: &str = "confidence.json";
+
+/// File of block `b`'s ground-truth pairs.
+pub fn pairs_file(b: usize) -> String {
+    format!("{}/pairs.safetensors", block_dir(b))
+}
+
+/// File of block `b`'s query encoder.
+pub fn encoder_file(b: usize) -> String {
+    format!("{}/encoder.safetensors", block_dir(b))
+}
+
+/// File of block `b`'s selection record.
+pub fn selection_file(b: usize) -> String {
+    format!("{}/selection.json", block_dir(b))
+}
+
+/// Block `b`'s selection and how it was obtained.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SelectionRecord {
+    /// Selected field dims.
+    pub dims: Vec<usize>,
+    /// Selector name.
+    pub selector: String,
+    /// Its objective value.
+    pub objective: f64,
+    /// Pairs it was selected on.
+    pub pairs: usize,
+}
+
+/// A training view of a block, with its frame index in the dataset.
+fn views_of_block(
+    dataset: &Dataset,
+    partition: &Partition,
+    b: usize,
+    holdout_every: usize,
+) -> (Vec<TrainingView>, Vec<TrainingView>) {
+    let train = dataset.split_indices(Split::Train);
+    let mut fit = Vec::new();
+    let mut held = Vec::new();
+    for (k, &id) in partition.blocks[b].pose_ids.iter().enumerate() {
+        let Some(&i) = train.get(id) else { continue };
+        let f = &dataset.frames[i];
+        let v = TrainingView {
+            index: i,
+            camera: f.camera,
+            cam_from_world: f.cam_from_world,
+        };
+        if holdout_every > 0 && k % holdout_every == holdout_every - 1 {
+            held.push(v);
+        } else {
+            fit.push(v);
+        }
+    }
+    (fit, held)
+}
+
+/// At most `n` evenly spaced elements.
+fn spaced<T: Clone>(v: &[T], n: usize) -> Vec<T> {
+    if n == 0 || v.len() <= n {
+        return v.to_vec();
+    }
+    let step = v.len() as f64 / n as f64;
+    (0..n)
+        .map(|k| v[((k as f64 + 0.5) * step) as usize].clone())
+        .collect()
+}
+
+fn load_image(dataset: &Dataset, index: usize) -> Result<(Image<f32>, Camera), PipelineError> {
+    let f = &dataset.frames[index];
+    matloc_data::images::load_frame_image(dataset, f, 1).map_err(|e| PipelineError::Io {
+        path: dataset.image_path(f),
+        source: std::io::Error::other(e.to_string()),
+    })
+}
+
+fn load_nerf(map: &MapDir, b: usize) -> Result<NerfViewRenderer, PipelineError> {
+    let dir = map.path_of(&block_dir(b))?;
+    let model = NerfModel::load(&dir)?;
+    Ok(NerfViewRenderer::new(model, block_dir(b)))
+}
+
+fn load_encoder(map: &MapDir, b: usize) -> Result<QueryEncoder, PipelineError> {
+    // Read through the map so the checksum is verified.
+    let name = encoder_file(b);
+    map.read_file(&name)?;
+    QueryEncoder::load(&map.path_of(&name)?).map_err(|e| PipelineError::Encoder(e.to_string()))
+}
+
+/// The work of one stage: gets the map and the progress sink.
+type StageBody<'a> =
+    dyn FnMut(&mut MapDir, &mut dyn FnMut(&BuildEvent)) -> Result<(), PipelineError> + 'a;
+
+/// Runs a stage unless the manifest says it is done.
+fn stage(
+    map: &mut MapDir,
+    name: &str,
+    total: u64,
+    progress: &mut dyn FnMut(&BuildEvent),
+    body: &mut StageBody<'_>,
+) -> Result<(), PipelineError> {
+    if map.stage_done(name) {
+        progress(&BuildEvent::StageFinished {
+            name: name.into(),
+            seconds: 0.0,
+            skipped: true,
+        });
+        return Ok(());
+    }
+    let t = Instant::now();
+    progress(&BuildEvent::StageStarted {
+        name: name.into(),
+        total,
+    });
+    body(map, progress)?;
+    let secs = t.elapsed().as_secs_f64();
+    map.complete_stage(name, secs)?;
+    progress(&BuildEvent::StageFinished {
+        name: name.into(),
+        seconds: secs,
+        skipped: false,
+    });
+    Ok(())
+}
+
+/// Encoder feature map value of each pair's query cell.
+fn pair_query_features(
+    gt: &GtPairSet,
+    maps: &[(usize, FeatureMap)],
+) -> Result<Vec<f32>, PipelineError> {
+    let nd = gt.dims();
+    let mut qf = Vec::with_capacity(gt.len() * nd);
+    for p in 0..gt.len() {
+        let r = &gt.provenance.renders[gt.render[p] as usize];
+        let m = &maps
+            .iter()
+            .find(|(i, _)| *i == r.view.index)
+            .ok_or(PipelineError::Internal(
+                "pair of a view that was not encoded",
+            ))?
+            .1;
+        let q = gt.query_index[p] as usize;
+        let (x, y) = (q % m.width(), q / m.width());
+        if y >= m.height() {
+            return Err(PipelineError::Internal(
+                "pair cell outside the encoder grid",
+            ));
+        }
+        qf.extend_from_slice(m.pixel(x, y));
+    }
+    Ok(qf)
+}
+
+/// The stages after the sub-NeRFs (see the module docs).
+pub(crate) fn run_after_nerf(
+    dataset: &Dataset,
+    partition: &Partition,
+    map: &mut MapDir,
+    config: &MapConfig,
+    progress: &mut dyn FnMut(&BuildEvent),
+) -> Result<(), PipelineError> {
+    let nb = partition.blocks.len();
+    let all_dims: Vec<usize> = (0..matloc_nerf_field::FEATURE_DIM).collect();
+    let holdout = config.calibration.holdout_every;
+
+    for b in 0..nb {
+        let (fit, _) = views_of_block(dataset, partition, b, holdout);
+        if fit.is_empty() {
+            return Err(PipelineError::Config(format!(
+                "block {b} has no training views left after the hold-out"
+            )));
+        }
+        // Pairs.
+        let pair_views = spaced(&fit, config.pairs.views_per_block);
+        stage(
+            map,
+            &format!("pairs/{b}"),
+            pair_views.len() as u64,
+            progress,
+            &mut |map, _| {
+                let renderer = load_nerf(map, b)?;
+                let gt_cfg = GtConfig {
+                    stride: ENCODER_STRIDE,
+                    perturbation: config.pairs.perturbation.clone(),
+                    perturbations_per_view: config.pairs.perturbations_per_view,
+                    ..GtConfig::default()
+                };
+                let set = generate_pairs(&renderer, &pair_views, &gt_cfg, b as u64)
+                    .map_err(|e| PipelineError::Config(format!("pairs of block {b}: {e}")))?;
+                let bytes = set
+                    .to_bytes()
+                    .map_err(|e| PipelineError::Config(format!("pairs of block {b}: {e}")))?;
+                map.write_file(&pairs_file(b), &bytes)?;
+                Ok(())
+            },
+        )?;
+
+        // Encoder.
+        let enc_views = spaced(&fit, config.encoder.views_per_block);
+        let steps = config.encoder.train.steps as u64;
+        stage(
+            map,
+            &format!("encoder/{b}"),
+            steps,
+            progress,
+            &mut |map, progress| {
+                let renderer = load_nerf(map, b)?;
+                let mut samples = Vec::with_capacity(enc_views.len());
+                let mut rows = Vec::new();
+                for v in &enc_views {
+                    let (image, _) = load_image(dataset, v.index)?;
+                    let target = renderer
+                        .render_view(&v.camera, &v.cam_from_world, ENCODER_STRIDE, &all_dims)
+                        .map_err(|e| PipelineError::RenderFailure(e.to_string()))?;
+                    let nd = all_dims.len();
+                    for i in 0..target.cols * target.rows {
+                        if target.has_surface(i, config.encoder.train.min_accumulation) {
+                            rows.extend_from_slice(&target.features[i * nd..(i + 1) * nd]);
+                        }
+                    }
+                    samples.push(EncoderSample { image, target });
+                }
+                if rows.is_empty() {
+                    return Err(PipelineError::Config(format!(
+                        "block {b}: the sub-NeRF renders no surface at its training views"
+                    )));
+                }
+                let stats = FeatureStats::from_features(&rows, all_dims.len());
+                let cfg = EncoderTrainConfig {
+                    seed: config.encoder.train.seed.wrapping_add(b as u64),
+                    ..config.encoder.train.clone()
+                };
+                let enc = train_encoder(&samples, all_dims.clone(), stats, &cfg, &mut |p| {
+                    progress(&BuildEvent::StageProgress {
+                        done: p.step as u64,
+                        message: format!("loss {:.3} (mse {:.3}, nce {:.3})", p.loss, p.mse, p.nce),
+                    })
+                })
+                .map_err(|e| PipelineError::Encoder(e.to_string()))?;
+                let path = map.path_of(&encoder_file(b))?;
+                enc.save(&path)
+                    .map_err(|e| PipelineError::Encoder(e.to_string()))?;
+                map.register_file(&encoder_file(b))?;
+                Ok(())
+            },
+        )?;
+
+        // Selection.
+        stage(map, &format!("select/{b}"), 0, progress, &mut |map, _| {
+            let gt = GtPairSet::from_bytes(
+                &map.read_file(&pairs_file(b))?,
+                &map.path_of(&pairs_file(b))?,
+            )
+            .map_err(|e| PipelineError::Config(format!("pairs of block {b}: {e}")))?;
+            let enc = load_encoder(map, b)?;
+            let mut maps = Vec::new();
+            for r in &gt.provenance.renders {
+                if maps.iter().any(|(i, _)| *i == r.view.index) {
+                    continue;
+                }
+                let (image, _) = load_image(dataset, r.view.index)?;
+                let m = enc
+                    .encode(&image)
+                    .map_err(|e| PipelineError::Encoder(e.to_string()))?;
+                maps.push((r.view.index, m));
+            }
+            let qf = pair_query_features(&gt, &maps)?;
+            let pairs = PairSet::from_gt(&gt, Some(qf))
+                .map_err(|e| PipelineError::Config(format!("selection of block {b}: {e}")))?;
+            let mut rng = ChaCha8Rng::seed_from_u64(b as u64);
+            let sel = MatchingSelector::default()
+                .select(&pairs, config.select.dims, &mut rng)
+                .map_err(|e| PipelineError::Config(format!("selection of block {b}: {e}")))?;
+            let record = SelectionRecord {
+                dims: sel.dims.clone(),
+                selector: "greedy MNN-F1".into(),
+                objective: sel.report.objective,
+                pairs: gt.len(),
+            };
+            map.write_json(&selection_file(b), &record)?;
+            if let Some(e) = map.manifest_mut().blocks.get_mut(b) {
+                e.selected_dims = sel.dims;
+            }
+            map.save()?;
+            Ok(())
+        })?;
+    }
+
+    // Pose groups and place classifier over all training poses.
+    let train_idx = dataset.split_indices(Split::Train);
+    stage(
+        map,
+        "place",
+        config.place.train.epochs as u64,
+        progress,
+        &mut |map, progress| {
+            let mut images = Vec::with_capacity(train_idx.len());
+            let mut poses = Vec::with_capacity(train_idx.len());
+            let mut view_points = Vec::with_capacity(train_idx.len());
+            for (k, &i) in train_idx.iter().enumerate() {
+                let f = &dataset.frames[i];
+                let (image, camera) = load_image(dataset, i)?;
+                let depth = match matloc_data::images::load_frame_depth(dataset, f, 1) {
+                    Ok(Some(d)) => d,
+                    // No depth in the dataset: the block's NeRF renders it.
+                    _ => {
+                        let b = partition.block_of_member(k).unwrap_or(0);
+                        let r = load_nerf(map, b)?;
+                        let v = r
+                            .render_view(&camera, &f.cam_from_world, 1, &[])
+                            .map_err(|e| PipelineError::RenderFailure(e.to_string()))?;
+                        Image::from_vec(v.cols, v.rows, 1, v.depth_z)
+                            .map_err(|_| PipelineError::Internal("depth image shape"))?
+                    }
+                };
+                let vp = view_point_from_depth(&camera, &f.cam_from_world, &depth, 4).ok_or_else(
+                    || PipelineError::Place(format!("training view {i} sees no surface")),
+                )?;
+                images.push(image);
+                poses.push(f.cam_from_world);
+                view_points.push(vp);
+            }
+            let mut groups = PoseGroups::build(&poses, &view_points, &config.place.groups)
+                .map_err(|e| PipelineError::Place(e.to_string()))?;
+            groups.attach_blocks(|k| partition.block_of_member(k));
+            let model = PlaceModel::train(
+                PlaceMethod::ArcFace,
+                &images,
+                &poses,
+                &groups,
+                &config.place.train,
+                &mut |r| {
+                    progress(&BuildEvent::StageProgress {
+                        done: r.epoch as u64 + 1,
+                        message: format!("{} groups, loss {:.3}", groups.len(), r.loss),
+                    })
+                },
+            )
+            .map_err(|e| PipelineError::Place(e.to_string()))?;
+            let dir = map.path_of(PLACE_DIR)?;
+            model
+                .save(&dir)
+                .map_err(|e| PipelineError::Place(e.to_string()))?;
+            register_dir(map, PLACE_DIR)?;
+            Ok(())
+        },
+    )?;
+
+    // Confidence calibration on held-out views.
+    let mut held = Vec::new();
+    for b in 0..nb {
+        held.extend(views_of_block(dataset, partition, b, holdout).1);
+    }
+    let held = spaced(&held, config.calibration.max_views);
+    stage(
+        map,
+        "calibration",
+        held.len() as u64,
+        progress,
+        &mut |map, progress| {
+            let loaded = LoadedBlocks::load(map, nb)?;
+            let place = PlaceModel::load(&map.path_of(PLACE_DIR)?)
+                .map_err(|e| PipelineError::Place(e.to_string()))?;
+            let solver = LoRansacPnp::default();
+            let mut samples = Vec::new();
+            for (done, v) in held.iter().enumerate() {
+                let (image, camera) = load_image(dataset, v.index)?;
+                let hyps = place
+                    .predict(
+                        &image,
+                        &camera,
+                        config.calibration.hypotheses_per_view.max(1),
+                    )
+                    .map_err(|e| PipelineError::Place(e.to_string()))?;
+                for h in hyps {
+                    let fixed = FixedPlace(vec![h]);
+                    let options = LocalizeOptions {
+                        top_k: 1,
+                        confidence: ConfidenceModel {
+                            accept_threshold: 0.0,
+                            ..config.localize.confidence.clone()
+                        },
+                        ..config.localize.clone()
+                    };
+                    let localizer = loaded.localizer(&fixed, &solver, options);
+                    let out = localizer.localize(&image, &camera)?;
+                    let Some(rep) = out.hypotheses.first() else {
+                        continue;
+                    };
+                    let evidence = Evidence {
+                        inliers: rep.inliers,
+                        inlier_ratio: if rep.matches == 0 {
+                            0.0
+                        } else {
+                            rep.inliers as f64 / rep.matches as f64
+                        },
+                        matches: rep.matches,
+                    };
+                    let (te, re) = match &out.cam_from_world {
+                        Some(p) => (
+                            translation_error_m(p, &v.cam_from_world),
+                            rotation_error_deg(p, &v.cam_from_world),
+                        ),
+                        None => (f64::INFINITY, f64::INFINITY),
+                    };
+                    let ok = te <= config.calibration.correct_translation_m
+                        && re <= config.calibration.correct_rotation_deg;
+                    samples.push((evidence, ok, te, re));
+                }
+                progress(&BuildEvent::StageProgress {
+                    done: done as u64 + 1,
+                    message: format!(
+                        "{} attempts, {} correct",
+                        samples.len(),
+                        samples.iter().filter(|s| s.1).count()
+                    ),
+                });
+            }
+            let labelled: Vec<(Evidence, bool)> = samples.iter().map(|s| (s.0, s.1)).collect();
+            let model = ConfidenceModel::fit(&labelled, config.calibration.accept_threshold)
+                .map_err(|e| PipelineError::Config(format!("confidence calibration: {e}")))?;
+            let right = labelled
+                .iter()
+                .filter(|(e, ok)| model.accept(e) == *ok)
+                .count();
+            let accuracy = right as f64 / labelled.len().max(1) as f64;
+            // Infinite errors are not valid JSON numbers: store them as a large sentinel.
+            let samples = samples
+                .into_iter()
+                .map(|(e, ok, t, r)| (e, ok, t.min(1e9), r.min(1e9)))
+                .collect();
+            map.write_json(
+                CONFIDENCE_FILE,
+                &CalibrationRecord {
+                    model,
+                    samples,
+                    accuracy,
+                },
+            )?;
+            Ok(())
+        },
+    )?;
+    Ok(())
+}
+
+/// Lists every file under `dir` (relative to the map root) in the manifest.
+fn register_dir(map: &mut MapDir, dir: &str) -> Result<(), PipelineError> {
+    let path = map.path_of(dir)?;
+    let entries = std::fs::read_dir(&path).map_err(|e| PipelineError::Io {
+        path: path.clone(),
+        source: e,
+    })?;
+    for entry in entries {
+        let entry = entry.map_err(|e| PipelineError::Io {
+            path: path.clone(),
+            source: e,
+        })?;
+        let file = entry.file_name().to_string_lossy().to_string();
+        if entry.path().is_file() && !file.ends_with(".tmp") {
+            map.register_file(&format!("{dir}/{file}"))?;
+        }
+    }
+    Ok(())
+}
+
+/// A place predictor that returns fixed hypotheses (calibration, and evaluating every method
+/// from the same coarse poses).
+pub struct FixedPlace(pub Vec<PlaceHypothesis>);
+
+impl PlacePredictor for FixedPlace {
+    fn predict(
+        &self,
+        _image: &Image<f32>,
+        _camera: &Camera,
+        k: usize,
+    ) -> Result<Vec<PlaceHypothesis>, matloc_place::PlaceError> {
+        Ok(self.0.iter().take(k).cloned().collect())
+    }
+}
+
+/// One block of a loaded map.
+pub struct MapBlock {
+    /// The sub-NeRF as a feature/depth renderer.
+    pub renderer: NerfViewRenderer,
+    /// Query encoder into this block's feature space.
+    pub encoder: QueryEncoder,
+    /// MNN matcher normalising with this block's feature statistics.
+    pub matcher: MnnMatcher,
+    /// Selected dims.
+    pub dims: Vec<usize>,
+}
+
+/// The blocks of a map, loaded.
+pub struct LoadedBlocks(pub Vec<MapBlock>);
+
+impl LoadedBlocks {
+    /// Loads blocks `0..n` (NeRF, encoder, selection) from `map`.
+    pub fn load(map: &MapDir, n: usize) -> Result<Self, PipelineError> {
+        let mut blocks = Vec::with_capacity(n);
+        for b in 0..n {
+            let renderer = load_nerf(map, b)?;
+            let encoder = load_encoder(map, b)?;
+            let sel: SelectionRecord = map.read_json(&selection_file(b))?;
+            // The matcher sees only the selected dims: restrict the statistics to them.
+            let full = encoder.stats();
+            let mut stats = FeatureStats {
+                mean: Vec::with_capacity(sel.dims.len()),
+                std: Vec::with_capacity(sel.dims.len()),
+            };
+            for d in &sel.dims {
+                let c = encoder
+                    .dims()
+                    .iter()
+                    .position(|e| e == d)
+                    .ok_or(PipelineError::DimsNotEncoded { dim: *d })?;
+                stats.mean.push(full.mean[c]);
+                stats.std.push(full.std[c]);
+            }
+            let matcher = MnnMatcher::new(MnnConfig {
+                stats: Some(stats),
+                ..MnnConfig::default()
+            });
+            blocks.push(MapBlock {
+                renderer,
+                encoder,
+                matcher,
+                dims: sel.dims,
+            });
+        }
+        Ok(Self(blocks))
+    }
+
+    /// A localizer over these blocks.
+    pub fn localizer<'a>(
+        &'a self,
+        place: &'a dyn PlacePredictor,
+        solver: &'a dyn matloc_pnp::PoseSolver,
+        options: LocalizeOptions,
+    ) -> Localizer<'a> {
+        Localizer {
+            place,
+            blocks: self
+                .0
+                .iter()
+                .map(|b| LocalizerBlock {
+                    renderer: &b.renderer,
+                    encoder: &b.encoder,
+                    matcher: &b.matcher,
+                    dims: b.dims.clone(),
+                })
+                .collect(),
+            solver,
+            options,
+        }
+    }
+}
+
+/// A built map, loaded and validated: everything localization and evaluation need.
+pub struct LoadedMap {
+    /// The map directory (manifest, checksums).
+    pub dir: MapDir,
+    /// The build configuration.
+    pub config: MapConfig,
+    /// The partition.
+    pub partition: Partition,
+    /// Blocks.
+    pub blocks: LoadedBlocks,
+    /// Place classifier.
+    pub place: PlaceModel,
+    /// Calibrated confidence.
+    pub confidence: ConfidenceModel,
+}
+
+/// Stages a complete map has.
+pub fn required_stages(blocks: usize) -> Vec<String> {
+    let mut v = vec!["partition".to_string()];
+    for b in 0..blocks {
+        for s in ["nerf", "pairs", "encoder", "select"] {
+            v.push(format!("{s}/{b}"));
+        }
+    }
+    v.push("place".into());
+    v.push("calibration".into());
+    v
+}
+
+impl LoadedMap {
+    /// Opens a map: validates the manifest and every checksum, checks that the build
+    /// completed, and loads the models.
+    pub fn open(root: &Path) -> Result<Self, PipelineError> {
+        let dir = MapDir::open(root)?;
+        dir.verify()?;
+        let config: MapConfig = serde_json::from_value(dir.manifest().config.clone())
+            .map_err(|e| PipelineError::Config(format!("manifest config: {e}")))?;
+        let partition: Partition = dir.read_json(crate::build::PARTITION_FILE)?;
+        let n = partition.blocks.len();
+        for s in required_stages(n) {
+            if !dir.stage_done(&s) {
+                return Err(PipelineError::Incomplete {
+                    root: root.to_path_buf(),
+                    stage: s,
+                });
+            }
+        }
+        let blocks = LoadedBlocks::load(&dir, n)?;
+        dir.read_file(&format!("{PLACE_DIR}/{}", matloc_place::MODEL_WEIGHTS))?;
+        let place = PlaceModel::load(&dir.path_of(PLACE_DIR)?)
+            .map_err(|e| PipelineError::Place(e.to_string()))?;
+        let record: CalibrationRecord = dir.read_json(CONFIDENCE_FILE)?;
+        Ok(Self {
+            dir,
+            config,
+            partition,
+            blocks,
+            place,
+            confidence: record.model,
+        })
+    }
+
+    /// Localizer options: the stored ones with the calibrated confidence.
+    pub fn options(&self) -> LocalizeOptions {
+        LocalizeOptions {
+            confidence: self.confidence.clone(),
+            ..self.config.localize.clone()
+        }
+    }
+
+    /// The MatLoc localizer over this map's place classifier and blocks.
+    pub fn localizer<'a>(&'a self, solver: &'a dyn matloc_pnp::PoseSolver) -> Localizer<'a> {
+        self.blocks.localizer(&self.place, solver, self.options())
+    }
+
+    /// The NeRF of block `b`.
+    pub fn nerf(&self, b: usize) -> Option<&NerfModel> {
+        self.blocks.0.get(b).map(|x| x.renderer.model())
+    }
+}
