@@ -108,6 +108,10 @@ struct EvalArgs {
     /// Sub-cell refinement of the matches (`matloc_match::subcell`).
     #[arg(long, value_enum, default_value = "map")]
     subcell: SubcellArg,
+    /// Match only cells within this many pixels of each other (beyond the paper; default: the
+    /// whole image).
+    #[arg(long)]
+    window_px: Option<f64>,
     /// Write the table as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -407,6 +411,7 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
             side: args.subcell.side(),
             ..Default::default()
         },
+        window_px: args.window_px,
         ..Default::default()
     });
     let solver = LoRansacPnp::default();
@@ -470,7 +475,7 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     let med = |v: &[f64]| median(v).unwrap_or(f64::NAN);
     let cam: &Camera = &sc.test[0].camera;
     println!(
-        "queries: {} test views x {} starts; query {}x{} px, grid {}x{}; sub-cell refinement {}; start perturbation uniform ball {} m / {} deg (median start error {:.2} m / {:.2} deg)",
+        "queries: {} test views x {} starts; query {}x{} px, grid {}x{}; sub-cell refinement {}, window {}; start perturbation uniform ball {} m / {} deg (median start error {:.2} m / {:.2} deg)",
         sc.test.len(),
         args.starts,
         cam.width,
@@ -478,6 +483,8 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
         cam.width / ENCODER_STRIDE,
         cam.height / ENCODER_STRIDE,
         args.subcell.name(),
+        args.window_px
+            .map_or("whole image".to_string(), |w| format!("{w} px")),
         args.query_translation_m,
         args.query_rotation_deg,
         med(&start_t),
@@ -513,7 +520,7 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
         let doc = serde_json::json!({
             "preset": args.scene.preset, "seed": args.scene.seed,
             "query_source": match args.query { QuerySource::Oracle => "oracle", QuerySource::Encoder => "encoder" },
-            "subcell": args.subcell.name(),
+            "subcell": args.subcell.name(), "window_px": args.window_px,
             "start_t_median_m": med(&start_t), "start_r_median_deg": med(&start_r),
             "rows": json,
         });

@@ -30,6 +30,7 @@ pub mod nerf_view;
 pub mod subcell;
 pub mod synth_view;
 pub mod types;
+pub mod window;
 
 pub use error::{MatchError, Side};
 pub use kernel::{NnTable, NnTables};

@@ -63,12 +63,10 @@ pub fn render_map_points(
     }
     let fmap = FeatureMap::from_vec(cols, rows, dims.len(), view.features)
         .map_err(|e| MatchError::Shape(e.to_string()))?;
-    Ok(RenderedPoints::from_rendered(
-        &fmap,
-        points,
-        &view.accumulation,
-        min_accumulation,
-    )?)
+    Ok(
+        RenderedPoints::from_rendered(&fmap, points, &view.accumulation, min_accumulation)?
+            .with_pixel_grid(grid)?,
+    )
 }
 
 /// Matches and the time matching took.

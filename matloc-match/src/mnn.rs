@@ -4,6 +4,7 @@ use crate::error::{MatchError, Side};
 use crate::kernel::{NnTables, nn_tables_faer, nn_tables_reference, nn_tables_tiled};
 use crate::subcell::{PreparedGrid, SubcellConfig, SubcellSide, interpolate_point, peak_offset};
 use crate::types::{Match2d3d, QueryFeatures, RenderedPoints};
+use crate::window::{Side as WindowSide, nn_tables_windowed};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -72,6 +73,11 @@ pub struct MnnConfig {
     /// Sub-cell refinement of the matches ([`crate::subcell`]); only [`Matcher::match_features`]
     /// applies it (the raw [`mnn_prepared`] pairs are cell indices).
     pub subcell: SubcellConfig,
+    /// Image-space window (beyond the paper): match a query cell only with rendered cells whose
+    /// centres lie within this many pixels of its own, and vice versa ([`crate::window`]).
+    /// Needs [`RenderedPoints::pixel_grid`] (set by `render_map_points`); without it the full
+    /// MNN runs. `None` (default): the whole image, as in the paper.
+    pub window_px: Option<f64>,
 }
 
 impl Default for MnnConfig {
@@ -83,6 +89,7 @@ impl Default for MnnConfig {
             l2_normalise: true,
             kernel: MnnKernel::Tiled,
             subcell: SubcellConfig::default(),
+            window_px: None,
         }
     }
 }
@@ -100,6 +107,13 @@ impl MnnConfig {
             && t.is_nan()
         {
             return Err(MatchError::InvalidConfig("min_similarity is NaN".into()));
+        }
+        if let Some(w) = self.window_px
+            && !(w > 0.0 && w.is_finite())
+        {
+            return Err(MatchError::InvalidConfig(format!(
+                "window_px must be positive and finite, got {w}"
+            )));
         }
         let sc = &self.subcell;
         if !(sc.max_shift >= 0.0 && sc.max_shift.is_finite()) || sc.max_spacing_ratio.is_nan() {
@@ -360,9 +374,35 @@ impl Matcher for MnnMatcher {
         let mrows = map.valid_indices();
         let mp = prepare_rows(map.features(), qd, &mrows, sel, stats, norm, Side::Map)?;
         let d = sel.len();
-        let raw = mnn_prepared(&q, &mp, d, &self.config)?;
-        let sc = &self.config.subcell;
         let (qw, qh) = (query.map.width(), query.map.height());
+        let raw = match (self.config.window_px, map.grid(), map.pixel_grid()) {
+            (Some(radius), Some((cols, rows)), Some(pgrid)) => {
+                let mut row_of = vec![u32::MAX; map.len()];
+                for (k, &i) in mrows.iter().enumerate() {
+                    row_of[i] = k as u32;
+                }
+                let qside = WindowSide {
+                    data: &q,
+                    cols: qw,
+                    rows: qh,
+                    grid: query.grid,
+                    row_of: None,
+                    cell_of: None,
+                };
+                let mside = WindowSide {
+                    data: &mp,
+                    cols,
+                    rows,
+                    grid: pgrid,
+                    row_of: Some(&row_of),
+                    cell_of: Some(&mrows),
+                };
+                let t = nn_tables_windowed(&qside, &mside, d, radius);
+                mutual_from_tables(&t, &self.config)
+            }
+            _ => mnn_prepared(&q, &mp, d, &self.config)?,
+        };
+        let sc = &self.config.subcell;
         let qgrid = PreparedGrid {
             data: &q,
             d,

@@ -105,6 +105,9 @@ pub struct RenderedPoints {
     /// (sub-cell refinement on the map side needs the neighbours of a cell).
     #[serde(default)]
     grid: Option<(usize, usize)>,
+    /// Cell → pixel mapping of that grid, when known (windowed matching needs it).
+    #[serde(default)]
+    pixel_grid: Option<QueryGrid>,
 }
 
 impl RenderedPoints {
@@ -132,6 +135,7 @@ impl RenderedPoints {
             points,
             valid,
             grid: None,
+            pixel_grid: None,
         })
     }
 
@@ -150,6 +154,28 @@ impl RenderedPoints {
     /// Grid layout `(cols, rows)`, if the points form one.
     pub fn grid(&self) -> Option<(usize, usize)> {
         self.grid
+    }
+
+    /// Declares where the grid's cells lie in the image the map was rendered for (cell centres
+    /// as in [`QueryGrid::cell_centre`]). Needs a grid layout ([`Self::with_grid`]).
+    pub fn with_pixel_grid(mut self, grid: QueryGrid) -> Result<Self, MatchError> {
+        if self.grid.is_none() {
+            return Err(MatchError::Shape(
+                "a pixel grid needs the points' grid layout".into(),
+            ));
+        }
+        if !(grid.stride > 0.0 && grid.stride.is_finite())
+            || grid.offset.iter().any(|v| !v.is_finite())
+        {
+            return Err(MatchError::Shape(format!("invalid pixel grid {grid:?}")));
+        }
+        self.pixel_grid = Some(grid);
+        Ok(self)
+    }
+
+    /// Cell → pixel mapping, if known ([`crate::localize::render_map_points`] sets it).
+    pub fn pixel_grid(&self) -> Option<QueryGrid> {
+        self.pixel_grid
     }
 
     /// All points valid.

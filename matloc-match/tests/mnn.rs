@@ -409,3 +409,56 @@ fn grid_layout_must_fit_the_points() {
     assert!(map.clone().with_grid(4, 2).is_err());
     assert_eq!(map.with_grid(3, 2).unwrap().grid(), Some((3, 2)));
 }
+
+/// The windowed MNN equals the full one when the window covers the image, and never pairs
+/// cells farther apart than the window otherwise.
+#[test]
+fn windowed_mnn_matches_full_mnn_and_respects_the_window() {
+    let (cols, rows, d) = (12usize, 9usize, 6usize);
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let q = random_unit(&mut rng, cols * rows, d);
+    let m = random_unit(&mut rng, cols * rows, d);
+    let valid: Vec<bool> = (0..cols * rows).map(|i| i % 7 != 3).collect();
+    let points: Vec<[f64; 3]> = (0..cols * rows).map(|i| [i as f64, 0.0, 1.0]).collect();
+    let query = QueryFeatures::new(FeatureMap::from_vec(cols, rows, d, q).unwrap(), 4.0);
+    let map = RenderedPoints::new(d, m, points, valid)
+        .unwrap()
+        .with_grid(cols, rows)
+        .unwrap()
+        .with_pixel_grid(QueryGrid::with_stride(4.0))
+        .unwrap();
+    let run = |window_px: Option<f64>, ratio: Option<f32>| {
+        MnnMatcher::new(MnnConfig {
+            window_px,
+            ratio,
+            subcell: SubcellConfig::off(),
+            ..Default::default()
+        })
+        .match_features(&query, &map, None)
+        .unwrap()
+    };
+    for ratio in [None, Some(0.9)] {
+        assert_eq!(run(Some(1e6), ratio), run(None, ratio));
+    }
+    let near = run(Some(9.0), None);
+    assert!(!near.is_empty());
+    for x in &near {
+        let c = x.map_index;
+        let p = [(c % cols) as f64 * 4.0 + 2.0, (c / cols) as f64 * 4.0 + 2.0];
+        let dist = (p[0] - x.query_px[0]).hypot(p[1] - x.query_px[1]);
+        assert!(dist <= 9.0, "{dist}");
+        assert!(map.valid()[c]);
+    }
+    // Bad window: typed error.
+    let bad = MnnMatcher::new(MnnConfig {
+        window_px: Some(-1.0),
+        ..Default::default()
+    });
+    assert!(matches!(
+        bad.match_features(&query, &map, None),
+        Err(MatchError::InvalidConfig(_))
+    ));
+    // A pixel grid needs the grid layout.
+    let plain = RenderedPoints::all_valid(1, vec![0.0; 2], vec![[0.0; 3]; 2]).unwrap();
+    assert!(plain.with_pixel_grid(QueryGrid::with_stride(4.0)).is_err());
+}
