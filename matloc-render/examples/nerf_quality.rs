@@ -92,7 +92,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             out,
             &FitOptions {
                 steps,
-                checkpoint_every: 1000,
+                checkpoint_every: std::env::var("NQ_CKPT")
+                    .ok()
+                    .and_then(|v| v.parse().ok())
+                    .unwrap_or(1000),
                 downscale: 1,
             },
             |p| {

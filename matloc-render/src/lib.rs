@@ -67,8 +67,8 @@ pub mod volume;
 
 pub use error::RenderError;
 pub use fit::{
-    EvalReport, EvalView, FitOptions, FitProgress, OPTIMIZER_FILE, TrainImages, ViewMetrics,
-    config_for_dataset, evaluate, has_checkpoint, save_checkpoint, train_on_dataset,
+    EvalReport, EvalView, FitOptions, FitProgress, LR_HORIZON_FACTOR, OPTIMIZER_FILE, TrainImages,
+    ViewMetrics, config_for_dataset, evaluate, has_checkpoint, save_checkpoint, train_on_dataset,
 };
 pub use model::{
     CONFIG_FILE, DepthKind, MODEL_FORMAT, ModelConfig, NerfModel, ViewConfig, WEIGHTS_FILE,

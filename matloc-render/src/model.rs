@@ -28,7 +28,9 @@ pub enum DepthKind {
     Expected,
     /// Median distance: where the ray's transmittance falls to 0.5 (the expected distance
     /// where it never does). Insensitive to thin fog in front of and weight spread behind a
-    /// surface, which bias the expected depth of short training runs.
+    /// surface, which bias the expected depth of short training runs. (Measured on `small`,
+    /// 300 steps: median depth error 4.5 % expected, 2.6 % this, 2.8 % with the median of
+    /// the weights `W = A/2`, which sits in front of the surface on half-transparent rays.)
     Median,
 }
 
@@ -110,7 +112,8 @@ impl ModelConfig {
     /// The spacing switches from linear to disparity at about the camera-to-far-side distance
     /// (`view_distance_m + ` half the box diagonal), the far plane is 20 scene diagonals away,
     /// rays are clipped to the box grown by 2 % (the scene is assumed to lie inside it), the
-    /// background colour is learned, and inference marches at twice the training step density.
+    /// background colour is learned, and inference reports the median depth and treats density
+    /// below 2 normalised units as empty (see [`ViewConfig`]).
     pub fn for_scene(
         min: [f32; 3],
         max: [f32; 3],
@@ -144,6 +147,8 @@ impl ModelConfig {
         cfg.train.occupancy.density_threshold = 4.0;
         cfg.train.distortion_weight = 0.01;
         cfg.clip_to_box_margin = Some(0.02);
+        cfg.render.depth = DepthKind::Median;
+        cfg.render.min_density = 2.0;
         cfg.train.background = Background::Learned([0.5; 3]);
         cfg
     }

@@ -221,6 +221,7 @@ fn divergence_stops_with_the_last_good_checkpoint_kept() {
     // A learning rate that grows by 10^40 over 40 steps blows the weights up.
     cfg.train.schedule.lr_init = 1e-2;
     cfg.train.schedule.lr_final = 1e38;
+    cfg.train.schedule.max_steps = 40;
     let err = train_on_dataset(
         &f.dataset,
         &cfg,

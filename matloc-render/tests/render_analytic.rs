@@ -194,3 +194,18 @@ fn pruned_grid_keeps_dense_cells_only() {
     assert!(!pruned.is_occupied_world([0.0, 0.0, 5.0]));
     assert!(grid.pruned(0.0).occupied_fraction() == grid.occupied_fraction());
 }
+
+#[test]
+fn median_depth_is_zero_where_the_transmittance_stays_above_half() {
+    // τ = 0.5 in total: A ≈ 0.39, the transmittance never reaches 0.5 (render_view then
+    // reports the expected depth).
+    let field = Slab {
+        top: 0.0,
+        slab: 0.05,
+        fog: 0.0,
+    };
+    let out = render_rays(&field, &rays(1), None, &opts(2000)).unwrap();
+    let a = out.accumulation[0];
+    assert!((a - (1.0 - (-0.5f32).exp())).abs() < 1e-3, "{a}");
+    assert_eq!(out.median[0], 0.0);
+}
