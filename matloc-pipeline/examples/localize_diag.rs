@@ -38,6 +38,12 @@ fn main() {
         }
     }
     let dataset = read_dataset(std::path::Path::new(&args[2])).expect("dataset");
+    // DIAG_WINDOW=pixels sets a matching window (default: global).
+    if let Ok(v) = std::env::var("DIAG_WINDOW") {
+        for b in &mut map.blocks.0 {
+            b.matcher.config.window_px = Some(v.parse().expect("window"));
+        }
+    }
     let solver = LoRansacPnp::default();
     println!(
         "query | coarse err (m, deg) | est err (m, deg) | matches inliers conf | from truth: est err | matches inliers conf"
@@ -72,6 +78,65 @@ fn main() {
             ..h
         };
         let (e2, r2) = run(truth);
+        // Oracle query features: the block's own NeRF rendered at the true pose (a perfect
+        // encoder), from the place hypothesis: isolates NeRF features + depth from the encoder.
+        let oracle = matloc_pipeline::diagnostics::RenderedQueryEncoder {
+            renderer: &map.blocks.0[0].renderer,
+            camera,
+            cam_from_world: f.cam_from_world,
+            dims: (0..47).collect(),
+            stride: 4,
+        };
+        let blk0 = &map.blocks.0[0];
+        let fixed = FixedPlace(vec![h.clone()]);
+        let loc = matloc_pipeline::Localizer {
+            place: &fixed,
+            blocks: vec![matloc_pipeline::LocalizerBlock {
+                renderer: &blk0.renderer,
+                encoder: &oracle,
+                matcher: &blk0.matcher,
+                dims: blk0.dims.clone(),
+            }],
+            solver: &solver,
+            options: options.clone(),
+        };
+        let o = loc.localize(&image, &camera).expect("oracle");
+        let oe = o.cam_from_world.map(|p| {
+            (
+                translation_error_m(&p, &f.cam_from_world),
+                rotation_error_deg(&p, &f.cam_from_world),
+            )
+        });
+        // Depth of the NeRF at the true pose vs the dataset's.
+        let gt_depth = matloc_data::images::load_frame_depth(&dataset, f, 1)
+            .ok()
+            .flatten();
+        let depth_err = gt_depth.map(|g| {
+            let r = matloc_match::gt::ViewRenderer::render_view(
+                &map.blocks.0[0].renderer,
+                &camera,
+                &f.cam_from_world,
+                4,
+                &[],
+            )
+            .expect("render");
+            let mut rel = Vec::new();
+            for i in 0..r.cols * r.rows {
+                let (x, y) = (i % r.cols * 4 + 2, i / r.cols * 4 + 2);
+                let gd = g.pixel(x, y)[0];
+                if gd > 0.0 && gd.is_finite() && r.accumulation[i] > 0.5 {
+                    rel.push(((r.depth_z[i] - gd) / gd).abs() as f64);
+                }
+            }
+            matloc_core::metrics::median(&rel).unwrap_or(f64::NAN)
+        });
+        println!(
+            "  oracle features from coarse: {} ({} matches, {} inliers); NeRF median depth error {:.1} %",
+            oe.map_or("-".to_string(), |e| format!("{:.2} m {:.2}°", e.0, e.1)),
+            o.hypotheses[0].matches,
+            o.hypotheses[0].inliers,
+            100.0 * depth_err.unwrap_or(f64::NAN)
+        );
         // Encoder fit at the true pose: correlation of encoder vs rendered features per
         // selected dim over surface cells.
         let blk = &map.blocks.0[0];

@@ -21,6 +21,7 @@ pub mod adapters;
 pub mod baselines;
 pub mod build;
 pub mod confidence;
+pub mod diagnostics;
 mod error;
 pub mod eval;
 pub mod localizer;

@@ -514,7 +514,7 @@ pub(crate) fn run_after_nerf(
         held.len() as u64,
         progress,
         &mut |map, progress| {
-            let loaded = LoadedBlocks::load(map, nb)?;
+            let loaded = LoadedBlocks::load(map, nb, config.localize.window_fraction)?;
             let place = PlaceModel::load(&map.path_of(PLACE_DIR)?)
                 .map_err(|e| PipelineError::Place(e.to_string()))?;
             let solver = LoRansacPnp::default();
@@ -640,7 +640,8 @@ pub struct MapBlock {
     pub renderer: NerfViewRenderer,
     /// Query encoder into this block's feature space.
     pub encoder: QueryEncoder,
-    /// MNN matcher normalising with this block's feature statistics.
+    /// MNN matcher normalising with this block's feature statistics (windowed when
+    /// [`LocalizeOptions::window_fraction`] is positive).
     pub matcher: MnnMatcher,
     /// Selected dims.
     pub dims: Vec<usize>,
@@ -650,8 +651,17 @@ pub struct MapBlock {
 pub struct LoadedBlocks(pub Vec<MapBlock>);
 
 impl LoadedBlocks {
-    /// Loads blocks `0..n` (NeRF, encoder, selection) from `map`.
-    pub fn load(map: &MapDir, n: usize) -> Result<Self, PipelineError> {
+    /// Loads blocks `0..n` (NeRF, encoder, selection) from `map`; `window_fraction` as in
+    /// [`LocalizeOptions::window_fraction`] for a grid as wide as the map's images.
+    pub fn load(map: &MapDir, n: usize, window_fraction: f64) -> Result<Self, PipelineError> {
+        let width = map
+            .manifest()
+            .scene
+            .get("camera")
+            .and_then(|c| c.get("width"))
+            .and_then(|w| w.as_u64())
+            .unwrap_or(320) as f64;
+        let window_px = (window_fraction > 0.0).then_some(window_fraction * width);
         let mut blocks = Vec::with_capacity(n);
         for b in 0..n {
             let renderer = load_nerf(map, b)?;
@@ -674,6 +684,7 @@ impl LoadedBlocks {
             }
             let matcher = MnnMatcher::new(MnnConfig {
                 stats: Some(stats),
+                window_px,
                 ..MnnConfig::default()
             });
             blocks.push(MapBlock {
@@ -758,7 +769,7 @@ impl LoadedMap {
                 });
             }
         }
-        let blocks = LoadedBlocks::load(&dir, n)?;
+        let blocks = LoadedBlocks::load(&dir, n, config.localize.window_fraction)?;
         dir.read_file(&format!("{PLACE_DIR}/{}", matloc_place::MODEL_WEIGHTS))?;
         let place = PlaceModel::load(&dir.path_of(PLACE_DIR)?)
             .map_err(|e| PipelineError::Place(e.to_string()))?;

@@ -1,0 +1,163 @@
+//! End to end on the `tiny` synthetic world: build a map (interrupted mid-stage and resumed),
+//! load it, localize the test views with MatLoc (and with a perfect query encoder, which
+//! checks everything but the CNN), refuse an unrelated image.
+
+use std::panic::{AssertUnwindSafe, catch_unwind};
+
+use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_core::{Image, Pose};
+use matloc_data::synth::{SynthConfig, synthesize};
+use matloc_data::{Split, read_dataset};
+use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
+use matloc_pipeline::diagnostics::RenderedQueryEncoder;
+use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use matloc_pipeline::stages::LoadedMap;
+use matloc_pipeline::{LocalizeOptions, Localizer, LocalizerBlock};
+use matloc_pnp::LoRansacPnp;
+
+fn tiny_config() -> MapConfig {
+    let mut c = MapConfig::default();
+    c.nerf.steps = 300;
+    c.nerf.checkpoint_every = 100;
+    // A smaller field and batch (as the renderer's own CI tests): same architecture.
+    c.nerf.model_overrides = serde_json::json!({
+        "field": {"log2_table_size": 15, "max_resolution": 512},
+        "train": {"batch_rays": 1024, "march": {"steps": 128, "max_samples": 24},
+                  "occupancy_warmup_steps": 32},
+        "render": {"march": {"steps": 128}},
+    });
+    c.encoder.train.steps = 150;
+    c.place.train.epochs = 20;
+    c.calibration.max_views = 8;
+    c
+}
+
+#[test]
+fn tiny_map_is_built_resumed_and_localizes() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let cfg = SynthConfig::preset("tiny").unwrap();
+    synthesize(&cfg, &data, &|_| {}).unwrap();
+    let dataset = read_dataset(&data).unwrap();
+    let out = dir.path().join("map");
+    let config = tiny_config();
+
+    // A build that dies in the middle of training the first encoder.
+    let crashed = catch_unwind(AssertUnwindSafe(|| {
+        build_map(&dataset, &out, &config, &mut |e| {
+            if let BuildEvent::StageFinished { name, seconds, .. } = e {
+                eprintln!("stage {name}: {seconds:.1} s");
+            }
+            if let BuildEvent::StageProgress { done, .. } = e
+                && *done >= 10
+                && !out.join("blocks/0/encoder.safetensors").exists()
+                && out.join("blocks/0/pairs.safetensors").exists()
+            {
+                panic!("simulated crash");
+            }
+        })
+    }));
+    assert!(crashed.is_err(), "the simulated crash did not happen");
+    assert!(
+        LoadedMap::open(&out).is_err(),
+        "an unfinished map must not load"
+    );
+
+    // Resume: finished stages are skipped.
+    let mut skipped_stages = Vec::new();
+    build_map(&dataset, &out, &config, &mut |e| {
+        if let BuildEvent::StageFinished {
+            name,
+            skipped,
+            seconds,
+        } = e
+        {
+            eprintln!(
+                "stage {name}: {seconds:.1} s{}",
+                if *skipped { " (skipped)" } else { "" }
+            );
+            if *skipped {
+                skipped_stages.push(name.clone());
+            }
+        }
+    })
+    .unwrap();
+    for s in ["partition", "nerf/0", "pairs/0"] {
+        assert!(
+            skipped_stages.iter().any(|x| x == s),
+            "{s} was redone: {skipped_stages:?}"
+        );
+    }
+
+    let map = LoadedMap::open(&out).unwrap();
+    let options = MethodOptions::default();
+    let solver = LoRansacPnp::default();
+    let within = |p: &Pose, gt: &Pose, t: f64, r: f64| {
+        translation_error_m(p, gt) <= t && rotation_error_deg(p, gt) <= r
+    };
+    let (mut matloc_ok, mut matloc_false, mut oracle_ok, mut oracle_t) = (0, 0, 0, Vec::new());
+    let tests: Vec<_> = dataset.split(Split::Test).collect();
+    for f in &tests {
+        let (image, camera) = matloc_data::images::load_frame_image(&dataset, f, 1).unwrap();
+        // The full pipeline: place → encoder → selected features → MNN → PnP → refinement.
+        let r = localize_with(&map, Method::Matloc, "q", &image, &camera, &options).unwrap();
+        if let Some(p) = r.cam_from_world {
+            if within(&p, &f.cam_from_world, 1.0, 5.0) {
+                matloc_ok += 1;
+            }
+            if !within(&p, &f.cam_from_world, 5.0, 10.0) {
+                matloc_false += 1;
+            }
+        }
+        // The same map with a perfect query encoder (the block's NeRF features rendered at the
+        // true pose), from the place classifier's hypotheses and the uncalibrated prior
+        // confidence: what NeRF features, depth, matching, PnP and refinement reach.
+        let blk = &map.blocks.0[0];
+        let oracle = RenderedQueryEncoder {
+            renderer: &blk.renderer,
+            camera,
+            cam_from_world: f.cam_from_world,
+            dims: (0..47).collect(),
+            stride: 4,
+        };
+        let localizer = Localizer {
+            place: &map.place,
+            blocks: vec![LocalizerBlock {
+                renderer: &blk.renderer,
+                encoder: &oracle,
+                matcher: &blk.matcher,
+                dims: blk.dims.clone(),
+            }],
+            solver: &solver,
+            options: LocalizeOptions::default(),
+        };
+        if let Some(p) = localizer.localize(&image, &camera).unwrap().cam_from_world {
+            oracle_t.push(translation_error_m(&p, &f.cam_from_world));
+            if within(&p, &f.cam_from_world, 1.0, 2.0) {
+                oracle_ok += 1;
+            }
+        }
+    }
+    eprintln!(
+        "tiny end to end: matloc {matloc_ok}/{} within 1 m / 5 deg, {matloc_false} false accepts; \
+         perfect encoder {oracle_ok} within 1 m / 2 deg, errors {oracle_t:?}",
+        tests.len()
+    );
+    // Measured 2026-12-01: 5 of 10 within 0.2–0.62 m from the top-1 place hypothesis; the
+    // others start 8–50 m or 90–180 degrees away (wrong place) and are refused.
+    assert!(
+        oracle_ok >= 3,
+        "perfect-encoder run: only {oracle_ok} of 10 localized"
+    );
+    // The learned encoder does not localize this CI-sized map yet (see docs/BENCHMARKS.md);
+    // what must hold is that the calibrated confidence refuses instead of returning wrong
+    // poses.
+    assert!(matloc_false <= 1, "{matloc_false} wrong poses returned");
+
+    // An unrelated image (flat grey) is refused, not given a pose.
+    let camera = dataset.split(Split::Test).next().unwrap().camera;
+    let mut grey = Image::new(camera.width as usize, camera.height as usize, 3);
+    grey.data_mut().fill(0.5);
+    let r = localize_with(&map, Method::Matloc, "grey", &grey, &camera, &options).unwrap();
+    assert!(r.cam_from_world.is_none(), "a grey image was localized");
+}
