@@ -12,13 +12,18 @@
 //! other sampled cells of the same image (temperature `τ`).
 //!
 //! Architecture: two stride-2 3 × 3 convolutions (3 → w/2 → w), then dilated 3 × 3 residual
-//! blocks (dilations 1, 2, 4, 8 by default) for a ~70 px receptive field, then a 1 × 1 head.
+//! blocks (dilations 1, 2, 4, 8 by default) for a ~70 px receptive field, then a per-cell MLP
+//! head ([`EncoderConfig::head_hidden`]). Training runs end to end, then optionally trains the
+//! head alone on a buffer of the frozen trunk's cell features ([`HeadPhaseConfig`]); measured in
+//! docs/BENCHMARKS.md "Query encoder" (`examples/encoder_study.rs`). Checkpoints are format 2
+//! ([`CHECKPOINT_KEY`]); format-1 files are refused with a typed error.
 
 use crate::gt::RenderedView;
 use crate::mnn::FeatureStats;
 use burn::module::Module;
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::{Linear, LinearConfig};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::prelude::*;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
@@ -33,6 +38,11 @@ use thiserror::Error;
 
 /// Output stride of the encoder (image pixels per feature cell).
 pub const ENCODER_STRIDE: u32 = 4;
+
+/// Safetensors metadata key of the checkpoint format (2: trunk + per-cell MLP head). Format 1
+/// files (key `matloc_encoder`, a 1 × 1 convolution head) are refused with
+/// [`EncoderError::Format`].
+pub const CHECKPOINT_KEY: &str = "matloc_encoder_v2";
 
 /// Why the encoder could not be trained, run, saved or loaded.
 #[derive(Debug, Error)]
@@ -80,6 +90,9 @@ pub struct EncoderConfig {
     pub width: usize,
     /// Dilations of the residual blocks at stride 4.
     pub dilations: Vec<usize>,
+    /// Hidden widths of the per-cell MLP head (ReLU between layers); empty: a single linear
+    /// layer from the trunk to the output dims.
+    pub head_hidden: Vec<usize>,
 }
 
 impl Default for EncoderConfig {
@@ -87,6 +100,7 @@ impl Default for EncoderConfig {
         EncoderConfig {
             width: 48,
             dilations: vec![1, 2, 4, 8],
+            head_hidden: vec![128, 128],
         }
     }
 }
@@ -96,16 +110,29 @@ struct Block {
     conv: Conv2d,
 }
 
+/// Convolutional trunk: image → `width` channels at stride 4.
 #[derive(Module, Debug)]
-struct Net {
+struct Trunk {
     stem1: Conv2d,
     stem2: Conv2d,
     blocks: Vec<Block>,
-    head: Conv2d,
 }
 
-impl Net {
-    fn new(cfg: &EncoderConfig, out_dims: usize, device: &Device) -> Self {
+/// Per-cell MLP on the last axis (`[..., width]` → `[..., dims]`).
+#[derive(Module, Debug)]
+struct Head {
+    hidden: Vec<Linear>,
+    out: Linear,
+}
+
+#[derive(Module, Debug)]
+struct Net {
+    trunk: Trunk,
+    head: Head,
+}
+
+impl Trunk {
+    fn new(cfg: &EncoderConfig, device: &Device) -> Self {
         let w = cfg.width;
         let conv = |cin: usize, cout: usize, k: usize, stride: usize, dil: usize| {
             let pad = dil * (k / 2);
@@ -115,7 +142,7 @@ impl Net {
                 .with_padding(PaddingConfig2d::Explicit(pad, pad, pad, pad))
                 .init(device)
         };
-        Net {
+        Trunk {
             stem1: conv(3, w / 2, 3, 2, 1),
             stem2: conv(w / 2, w, 3, 2, 1),
             blocks: cfg
@@ -125,17 +152,55 @@ impl Net {
                     conv: conv(w, w, 3, 1, d.max(1)),
                 })
                 .collect(),
-            head: conv(w, out_dims, 1, 1, 1),
         }
     }
 
+    /// `[B, 3, H, W]` → `[B, width, ⌈H/4⌉, ⌈W/4⌉]`.
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let mut h = relu(self.stem1.forward(x));
         h = relu(self.stem2.forward(h));
         for b in &self.blocks {
             h = h.clone() + relu(b.conv.forward(h));
         }
-        self.head.forward(h)
+        h
+    }
+}
+
+impl Head {
+    fn new(cfg: &EncoderConfig, out_dims: usize, device: &Device) -> Self {
+        let mut cin = cfg.width;
+        let mut hidden = Vec::new();
+        for &h in &cfg.head_hidden {
+            hidden.push(LinearConfig::new(cin, h).init(device));
+            cin = h;
+        }
+        Head {
+            hidden,
+            out: LinearConfig::new(cin, out_dims).init(device),
+        }
+    }
+
+    fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
+        let mut h = x;
+        for l in &self.hidden {
+            h = relu(l.forward(h));
+        }
+        self.out.forward(h)
+    }
+}
+
+impl Net {
+    fn new(cfg: &EncoderConfig, out_dims: usize, device: &Device) -> Self {
+        Net {
+            trunk: Trunk::new(cfg, device),
+            head: Head::new(cfg, out_dims, device),
+        }
+    }
+
+    /// `[B, 3, H, W]` → `[B, dims, ⌈H/4⌉, ⌈W/4⌉]`.
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let h = self.trunk.forward(x).permute([0, 2, 3, 1]);
+        self.head.forward(h).permute([0, 3, 1, 2])
     }
 }
 
@@ -190,6 +255,49 @@ pub struct EncoderTrainConfig {
     pub jitter: JitterConfig,
     /// Seed of initialisation order, batches, jitter and cell sampling.
     pub seed: u64,
+    /// Second phase: the head alone on a buffer of trunk features.
+    pub head_phase: HeadPhaseConfig,
+}
+
+/// Second training phase (after [`EncoderTrainConfig::steps`] end-to-end steps): the trunk is
+/// frozen, every training image (and `copies − 1` jittered copies) is run through it once, and
+/// the per-cell MLP head is trained on random cells of that buffer, `images` images × `cells`
+/// cells per step, with the same loss (InfoNCE within each image's cells). The idea of scene
+/// coordinate regression's ACE (a head trained on a shuffled buffer of backbone features): a
+/// head step costs a few matrix products instead of a full-image convolution pass, so it sees
+/// many more cells per second.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct HeadPhaseConfig {
+    /// Head-only steps (0: no second phase).
+    pub steps: usize,
+    /// Images per step.
+    pub images: usize,
+    /// Cells per image per step.
+    pub cells: usize,
+    /// Adam learning rate (cosine-decayed to 5 % over the phase).
+    pub learning_rate: f64,
+    /// Buffer copies of each image (the first unjittered).
+    pub copies: usize,
+}
+
+impl Default for HeadPhaseConfig {
+    fn default() -> Self {
+        HeadPhaseConfig {
+            steps: 0,
+            images: 8,
+            cells: 256,
+            learning_rate: 1e-3,
+            copies: 1,
+        }
+    }
+}
+
+impl EncoderTrainConfig {
+    /// Steps of both phases (what [`EncoderProgress::steps`] reports).
+    pub fn total_steps(&self) -> usize {
+        self.steps + self.head_phase.steps
+    }
 }
 
 impl Default for EncoderTrainConfig {
@@ -206,6 +314,7 @@ impl Default for EncoderTrainConfig {
             min_accumulation: 0.5,
             jitter: JitterConfig::default(),
             seed: 0,
+            head_phase: HeadPhaseConfig::default(),
         }
     }
 }
@@ -223,9 +332,9 @@ pub struct EncoderSample {
 /// Reported after every step.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EncoderProgress {
-    /// Steps done.
+    /// Steps done (both phases).
     pub step: usize,
-    /// Total steps.
+    /// Total steps ([`EncoderTrainConfig::total_steps`]).
     pub steps: usize,
     /// Total loss of the step.
     pub loss: f32,
@@ -364,7 +473,7 @@ impl QueryEncoder {
     fn to_bytes(&self) -> Result<Vec<u8>, String> {
         let meta = serde_json::to_string(&(&self.config, &self.dims, &self.stats))
             .map_err(|e| e.to_string())?;
-        let mut store = SafetensorsStore::from_bytes(None).metadata("matloc_encoder", meta);
+        let mut store = SafetensorsStore::from_bytes(None).metadata(CHECKPOINT_KEY, meta);
         self.net
             .save_into(&mut store)
             .map_err(|e| format!("{e:?}"))?;
@@ -395,11 +504,17 @@ impl QueryEncoder {
         };
         let (_, meta) =
             safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
-        let json = meta
-            .metadata()
-            .as_ref()
-            .and_then(|m| m.get("matloc_encoder"))
-            .ok_or_else(|| bad("no matloc_encoder metadata".into()))?;
+        let entries = meta.metadata().as_ref();
+        let json = match entries.and_then(|m| m.get(CHECKPOINT_KEY)) {
+            Some(j) => j,
+            None if entries.is_some_and(|m| m.contains_key("matloc_encoder")) => {
+                return Err(bad(
+                    "format 1 (convolutional head, before format 2's MLP head): retrain the encoder"
+                        .into(),
+                ));
+            }
+            None => return Err(bad(format!("no {CHECKPOINT_KEY} metadata"))),
+        };
         let (config, dims, stats): (EncoderConfig, Vec<usize>, FeatureStats) =
             serde_json::from_str(json).map_err(|e| bad(e.to_string()))?;
         if stats.mean.len() != dims.len() || stats.std.len() != dims.len() || dims.is_empty() {
@@ -565,11 +680,27 @@ pub fn train_encoder(
         net = optim.step(lr, net, grads);
         progress(&EncoderProgress {
             step: step + 1,
-            steps: cfg.steps,
+            steps: cfg.total_steps(),
             loss: loss_v,
             mse: mse_v,
             nce: nce_total,
         });
+    }
+    if cfg.head_phase.steps > 0 {
+        let head = train_head(
+            &net.trunk.valid(),
+            net.head,
+            samples,
+            &targets,
+            (rows, cols, d),
+            cfg,
+            &mut rng,
+            progress,
+        )?;
+        net = Net {
+            trunk: net.trunk,
+            head,
+        };
     }
     Ok(QueryEncoder {
         config: cfg.net.clone(),
@@ -577,6 +708,134 @@ pub fn train_encoder(
         stats,
         net: net.valid(),
     })
+}
+
+/// Per-image buffer of the second phase: row-major trunk features and standardised targets of
+/// the valid cells.
+struct CellBuffer {
+    features: Vec<f32>,
+    targets: Vec<f32>,
+    n: usize,
+}
+
+/// The second phase (see [`HeadPhaseConfig`]); `targets` are the prepared channel-major
+/// standardised targets and valid cells of `samples`.
+#[allow(clippy::too_many_arguments)]
+fn train_head(
+    trunk: &Trunk,
+    mut head: Head,
+    samples: &[EncoderSample],
+    targets: &[(Vec<f32>, Vec<f32>, Vec<usize>)],
+    (rows, cols, d): (usize, usize, usize),
+    cfg: &EncoderTrainConfig,
+    rng: &mut ChaCha8Rng,
+    progress: &mut dyn FnMut(&EncoderProgress),
+) -> Result<Head, EncoderError> {
+    let hc = &cfg.head_phase;
+    if hc.images == 0 || hc.cells < 2 || hc.copies == 0 {
+        return Err(EncoderError::InvalidConfig(
+            "head phase needs images >= 1, cells >= 2, copies >= 1".into(),
+        ));
+    }
+    let plain = Device::flex();
+    let width = cfg.net.width;
+    let cells = rows * cols;
+    let mut buffers = Vec::with_capacity(samples.len() * hc.copies);
+    for copy in 0..hc.copies {
+        for chunk in (0..samples.len()).collect::<Vec<_>>().chunks(4) {
+            let imgs: Vec<Image<f32>> = chunk
+                .iter()
+                .map(|&p| {
+                    if copy == 0 {
+                        samples[p].image.clone()
+                    } else {
+                        jitter(&samples[p].image, &cfg.jitter, rng)
+                    }
+                })
+                .collect();
+            let f = crop(trunk.forward(image_tensor(&imgs, &plain)?), rows, cols);
+            let v: Vec<f32> = f
+                .into_data()
+                .try_into_vec()
+                .map_err(|e| EncoderError::BadInput(format!("{e:?}")))?;
+            for (b, &p) in chunk.iter().enumerate() {
+                let (t, _, valid) = &targets[p];
+                let base = b * width * cells;
+                let mut features = Vec::with_capacity(valid.len() * width);
+                let mut tgt = Vec::with_capacity(valid.len() * d);
+                for &i in valid {
+                    features.extend((0..width).map(|k| v[base + k * cells + i]));
+                    tgt.extend((0..d).map(|k| t[k * cells + i]));
+                }
+                buffers.push(CellBuffer {
+                    features,
+                    targets: tgt,
+                    n: valid.len(),
+                });
+            }
+        }
+    }
+    buffers.retain(|b| b.n >= 2);
+    if buffers.is_empty() {
+        return Err(EncoderError::NoSamples);
+    }
+    let device = Device::flex().autodiff();
+    let mut optim = AdamConfig::new().init();
+    let g = hc.images.min(buffers.len());
+    for step in 0..hc.steps {
+        let picks = sample(rng, buffers.len(), g).into_vec();
+        let k = picks
+            .iter()
+            .map(|&p| buffers[p].n)
+            .min()
+            .unwrap_or(0)
+            .min(hc.cells);
+        let mut x = Vec::with_capacity(g * k * width);
+        let mut y = Vec::with_capacity(g * k * d);
+        for &p in &picks {
+            let b = &buffers[p];
+            for i in sample(rng, b.n, k) {
+                x.extend_from_slice(&b.features[i * width..(i + 1) * width]);
+                y.extend_from_slice(&b.targets[i * d..(i + 1) * d]);
+            }
+        }
+        let x = Tensor::<3>::from_data(TensorData::new(x, [g, k, width]), &device);
+        let y = Tensor::<3>::from_data(TensorData::new(y, [g, k, d]), &device);
+        let pred = head.forward(x);
+        let mse = (pred.clone() - y.clone()).square().mean().reshape([1]);
+        let mut loss = mse.clone().mul_scalar(cfg.w_reg);
+        let mut nce_v = 0.0;
+        if cfg.w_nce > 0.0 {
+            let norm = |t: Tensor<3>| {
+                let n = t.clone().square().sum_dim(2).sqrt().add_scalar(1e-6);
+                t / n
+            };
+            let logits = norm(pred)
+                .matmul(norm(y).swap_dims(1, 2))
+                .div_scalar(cfg.temperature);
+            let eye = Tensor::<2>::eye(k, &device).reshape([1, k, k]);
+            let nce = (log_softmax(logits, 2) * eye)
+                .sum()
+                .div_scalar(-((g * k) as f32))
+                .reshape([1]);
+            nce_v = nce.clone().into_scalar_f32();
+            loss = loss + nce.mul_scalar(cfg.w_nce);
+        }
+        let mse_v = mse.into_scalar_f32();
+        let loss_v = loss.clone().into_scalar_f32();
+        let grads = GradientsParams::from_grads(loss.backward(), &head);
+        let t = step as f64 / hc.steps as f64;
+        let lr = hc.learning_rate * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()));
+        head = optim.step(lr, head, grads);
+        progress(&EncoderProgress {
+            step: cfg.steps + step + 1,
+            steps: cfg.total_steps(),
+            loss: loss_v,
+            mse: mse_v,
+            nce: nce_v,
+        });
+    }
+    Ok(head)
 }
 
 trait ScalarF32 {

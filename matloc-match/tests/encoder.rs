@@ -58,6 +58,7 @@ fn small_config(steps: usize) -> EncoderTrainConfig {
         net: EncoderConfig {
             width: 16,
             dilations: vec![1],
+            head_hidden: vec![16],
         },
         steps,
         batch: 4,
@@ -133,4 +134,71 @@ fn typed_errors() {
         QueryEncoder::load(&p),
         Err(EncoderError::Format { .. })
     ));
+}
+
+#[test]
+fn head_phase_lowers_the_loss_and_roundtrips() {
+    let s = samples(8, 32, 3);
+    let stats = stats_of(&s);
+    let cfg = EncoderTrainConfig {
+        head_phase: HeadPhaseConfig {
+            steps: 60,
+            images: 4,
+            cells: 32,
+            learning_rate: 1e-2,
+            copies: 2,
+        },
+        ..small_config(20)
+    };
+    assert_eq!(cfg.total_steps(), 80);
+    let mut seen = Vec::new();
+    let enc = train_encoder(&s, vec![0, 1, 2, 3], stats, &cfg, &mut |p| {
+        seen.push((p.step, p.steps, p.mse))
+    })
+    .unwrap();
+    assert_eq!(seen.len(), 80);
+    assert!(
+        seen.iter()
+            .enumerate()
+            .all(|(i, p)| p.0 == i + 1 && p.1 == 80)
+    );
+    // Head-phase mse (last 5 steps) below the end-to-end phase's last 5 steps.
+    let e2e: f32 = seen[15..20].iter().map(|p| p.2).sum::<f32>() / 5.0;
+    let head: f32 = seen[75..].iter().map(|p| p.2).sum::<f32>() / 5.0;
+    assert!(head < e2e, "mse {e2e} -> {head}");
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("enc.safetensors");
+    enc.save(&path).unwrap();
+    let back = QueryEncoder::load(&path).unwrap();
+    assert_eq!(back.config(), enc.config());
+    let (a, b) = (
+        enc.encode(&s[1].image).unwrap(),
+        back.encode(&s[1].image).unwrap(),
+    );
+    for (x, y) in a.data().iter().zip(b.data()) {
+        assert!((x - y).abs() < 1e-5);
+    }
+}
+
+#[test]
+fn format_1_checkpoint_is_refused_with_a_typed_error() {
+    // A format-1 file: safetensors with the old `matloc_encoder` metadata and the old
+    // convolutional-head tensor names.
+    let meta = std::collections::HashMap::from([(
+        "matloc_encoder".to_string(),
+        r#"[{"width":16,"dilations":[1]},[0],{"mean":[0.0],"std":[1.0]}]"#.to_string(),
+    )]);
+    let w = vec![0u8; 4 * 16];
+    let view = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![1, 16, 1, 1], &w)
+        .unwrap();
+    let bytes = safetensors::serialize([("head.weight", view)], Some(meta)).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("v1.safetensors");
+    std::fs::write(&p, bytes).unwrap();
+    match QueryEncoder::load(&p) {
+        Err(EncoderError::Format { reason, .. }) => {
+            assert!(reason.contains("format 1"), "{reason}")
+        }
+        other => panic!("expected a format error, got {other:?}"),
+    }
 }

@@ -1,0 +1,362 @@
+//! Query-encoder study on a real NeRF map: trains an encoder on a dataset's training views with
+//! the block's rendered features as targets, then measures what matching needs, on training
+//! views (fit) and on test views (generalisation), next to a perfect encoder (the NeRF's own
+//! features rendered at the true pose):
+//!
+//! * from the true pose: MNN matches, precision (≤ 2 px) and PnP inliers;
+//! * from perturbed starts (3 m / 5°, the pipeline's coarse-pose regime): success within
+//!   1 m / 5° after one render–match–PnP step;
+//! * per-dim Pearson correlation of encoder vs rendered features.
+//!
+//! Dims: greedy forward selection (N_s = 5) maximising correct matches from the true pose on the
+//! training views (the pipeline's selector optimises the same thing on GT pairs), and all 47.
+//!
+//!     cargo run --release -p matloc-match --example encoder_study -- MAP DATA [CONFIG_JSON]
+//!
+//! `MAP` is a map directory (its `blocks/0` NeRF is used), `DATA` the dataset it was built from,
+//! `CONFIG_JSON` an [`EncoderTrainConfig`] (missing fields take the defaults), e.g.
+//! `'{"steps":600,"net":{"width":64}}'`. `ENC_VIEWS` caps the training views (default 48).
+
+use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_core::{Camera, FeatureMap, Image, Pose};
+use matloc_data::{Split, read_dataset};
+use matloc_match::encoder::{
+    ENCODER_STRIDE, EncoderSample, EncoderTrainConfig, QueryEncoder, train_encoder,
+};
+use matloc_match::gt::{PerturbKind, Perturbation, ViewRenderer};
+use matloc_match::localize::{correct_matches, render_map_points, solve_pose, timed_match};
+use matloc_match::nerf_view::NerfViewRenderer;
+use matloc_match::{FeatureStats, MnnConfig, MnnMatcher, QueryFeatures, RenderedPoints};
+use matloc_pnp::LoRansacPnp;
+use matloc_render::NerfModel;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::time::Instant;
+
+struct View {
+    image: Image<f32>,
+    camera: Camera,
+    pose: Pose,
+    /// Map side rendered at the true pose (all dims).
+    truth: RenderedPoints,
+    /// Features rendered at the true pose on the query grid (the perfect encoder).
+    oracle: FeatureMap,
+    /// Map sides rendered at perturbed starts.
+    starts: Vec<(Pose, RenderedPoints)>,
+}
+
+#[derive(Default, Clone, Copy)]
+struct Score {
+    matches: f64,
+    correct: f64,
+    inliers: f64,
+    localized: usize,
+    tries: usize,
+}
+
+fn score(
+    views: &[View],
+    queries: &[FeatureMap],
+    dims: &[usize],
+    matcher: &MnnMatcher,
+    starts: bool,
+) -> Score {
+    let solver = LoRansacPnp::default();
+    let mut s = Score::default();
+    for (v, q) in views.iter().zip(queries) {
+        let query = QueryFeatures::new(q.clone(), ENCODER_STRIDE as f64);
+        let tm = timed_match(matcher, &query, &v.truth, Some(dims)).expect("match");
+        s.matches += tm.matches.len() as f64;
+        s.correct += correct_matches(&tm.matches, &v.camera, &v.pose, 2.0) as f64;
+        if !starts {
+            continue;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        if let Ok(r) = solve_pose(&tm.matches, &v.camera, &solver, &mut rng) {
+            s.inliers += r.inliers.iter().filter(|&&b| b).count() as f64;
+        }
+        {
+            for (_, map) in &v.starts {
+                let tm = timed_match(matcher, &query, map, Some(dims)).expect("match");
+                s.tries += 1;
+                let mut rng = ChaCha8Rng::seed_from_u64(7);
+                if let Ok(r) = solve_pose(&tm.matches, &v.camera, &solver, &mut rng) {
+                    let ni = r.inliers.iter().filter(|&&b| b).count();
+                    if ni >= 12
+                        && translation_error_m(&r.cam_from_world, &v.pose) <= 1.0
+                        && rotation_error_deg(&r.cam_from_world, &v.pose) <= 5.0
+                    {
+                        s.localized += 1;
+                    }
+                }
+            }
+        }
+    }
+    let n = views.len().max(1) as f64;
+    s.matches /= n;
+    s.correct /= n;
+    s.inliers /= n;
+    s
+}
+
+fn greedy(views: &[View], queries: &[FeatureMap], matcher: &MnnMatcher, n_s: usize) -> Vec<usize> {
+    let mut sel: Vec<usize> = Vec::new();
+    for _ in 0..n_s {
+        let mut best = (f64::MIN, 0);
+        for d in 0..47 {
+            if sel.contains(&d) {
+                continue;
+            }
+            let mut trial = sel.clone();
+            trial.push(d);
+            let c = score(views, queries, &trial, matcher, false).correct;
+            if c > best.0 {
+                best = (c, d);
+            }
+        }
+        sel.push(best.1);
+    }
+    sel
+}
+
+fn correlations(views: &[View], queries: &[FeatureMap], dims: &[usize]) -> Vec<f64> {
+    dims.iter()
+        .map(|&d| {
+            let (mut xs, mut ys) = (Vec::new(), Vec::new());
+            for (v, q) in views.iter().zip(queries) {
+                let (o, w) = (&v.oracle, v.oracle.width());
+                for i in 0..w * o.height() {
+                    let t = o.pixel(i % w, i / w)[d];
+                    if t.is_finite() && v.truth_valid(i) {
+                        xs.push(t as f64);
+                        ys.push(q.pixel(i % w, i / w)[d] as f64);
+                    }
+                }
+            }
+            pearson(&xs, &ys)
+        })
+        .collect()
+}
+
+fn pearson(xs: &[f64], ys: &[f64]) -> f64 {
+    let n = xs.len().max(1) as f64;
+    let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+    for (x, y) in xs.iter().zip(ys) {
+        sxy += (x - mx) * (y - my);
+        sxx += (x - mx) * (x - mx);
+        syy += (y - my) * (y - my);
+    }
+    sxy / (sxx * syy).sqrt().max(1e-12)
+}
+
+impl View {
+    fn truth_valid(&self, i: usize) -> bool {
+        self.truth.valid()[i]
+    }
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if args.len() < 3 {
+        eprintln!("usage: encoder_study MAP DATA [CONFIG_JSON]");
+        std::process::exit(2);
+    }
+    let cfg: EncoderTrainConfig = args
+        .get(3)
+        .map(|s| serde_json::from_str(s).expect("config JSON"))
+        .unwrap_or_default();
+    let max_views: usize = std::env::var("ENC_VIEWS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(48);
+    let model =
+        NerfModel::load(&std::path::Path::new(&args[1]).join("blocks/0")).expect("block 0 NeRF");
+    let renderer = NerfViewRenderer::new(model, "blocks/0");
+    let dataset = read_dataset(std::path::Path::new(&args[2])).expect("dataset");
+    let all: Vec<usize> = (0..47).collect();
+    let perturb = Perturbation {
+        kind: PerturbKind::UniformBall,
+        translation_m: 3.0,
+        rotation_deg: 5.0,
+    };
+    let t0 = Instant::now();
+    let load = |split: Split, cap: usize, starts: usize| -> Vec<View> {
+        let frames: Vec<_> = dataset.split(split).collect();
+        let n = cap.min(frames.len());
+        let step = frames.len() as f64 / n.max(1) as f64;
+        (0..n)
+            .map(|k| {
+                let f = frames[((k as f64 + 0.5) * step) as usize];
+                let (image, camera) =
+                    matloc_data::images::load_frame_image(&dataset, f, 1).expect("image");
+                let truth = render_map_points(
+                    &renderer,
+                    &camera,
+                    &f.cam_from_world,
+                    ENCODER_STRIDE,
+                    &all,
+                    0.5,
+                )
+                .expect("render");
+                let r = renderer
+                    .render_view(&camera, &f.cam_from_world, ENCODER_STRIDE, &all)
+                    .expect("render");
+                let oracle = FeatureMap::from_vec(r.cols, r.rows, 47, r.features).expect("map");
+                let mut prng = ChaCha8Rng::seed_from_u64(1000 + k as u64);
+                let starts = (0..starts)
+                    .map(|_| {
+                        let p = perturb.apply(&f.cam_from_world, &mut prng);
+                        let m =
+                            render_map_points(&renderer, &camera, &p, ENCODER_STRIDE, &all, 0.5)
+                                .expect("render");
+                        (p, m)
+                    })
+                    .collect();
+                View {
+                    image,
+                    camera,
+                    pose: f.cam_from_world,
+                    truth,
+                    oracle,
+                    starts,
+                }
+            })
+            .collect()
+    };
+    let train = load(Split::Train, max_views, 0);
+    let test = load(Split::Test, usize::MAX, 3);
+    // Fit is measured on 10 evenly spaced training views (with perturbed starts).
+    let n_fit = 10.min(train.len());
+    let fit: Vec<View> = (0..n_fit)
+        .map(|k| {
+            let v = &train[k * train.len() / n_fit];
+            let mut prng = ChaCha8Rng::seed_from_u64(2000 + k as u64);
+            let starts = (0..3)
+                .map(|_| {
+                    let p = perturb.apply(&v.pose, &mut prng);
+                    let m = render_map_points(&renderer, &v.camera, &p, ENCODER_STRIDE, &all, 0.5)
+                        .expect("render");
+                    (p, m)
+                })
+                .collect();
+            View {
+                image: v.image.clone(),
+                camera: v.camera,
+                pose: v.pose,
+                truth: v.truth.clone(),
+                oracle: v.oracle.clone(),
+                starts,
+            }
+        })
+        .collect();
+    println!(
+        "{} train views, {} test views, {}x{} px; rendered in {:.1} s",
+        train.len(),
+        test.len(),
+        train[0].image.width(),
+        train[0].image.height(),
+        t0.elapsed().as_secs_f64()
+    );
+    // Statistics and samples.
+    let mut rows = Vec::new();
+    let samples: Vec<EncoderSample> = train
+        .iter()
+        .map(|v| {
+            let r = renderer
+                .render_view(&v.camera, &v.pose, ENCODER_STRIDE, &all)
+                .expect("render");
+            for i in 0..r.cols * r.rows {
+                if r.has_surface(i, cfg.min_accumulation) {
+                    rows.extend_from_slice(&r.features[i * 47..(i + 1) * 47]);
+                }
+            }
+            EncoderSample {
+                image: v.image.clone(),
+                target: r,
+            }
+        })
+        .collect();
+    let stats = FeatureStats::from_features(&rows, 47);
+    let matcher = MnnMatcher::new(MnnConfig {
+        stats: Some(stats.clone()),
+        ..Default::default()
+    });
+    let t1 = Instant::now();
+    let mut last = None;
+    let enc = train_encoder(&samples, all.clone(), stats, &cfg, &mut |p| {
+        if p.step % 100 == 0 || p.step == p.steps {
+            eprintln!(
+                "  step {}/{} loss {:.3} (mse {:.3}, nce {:.3}) {:.0} s",
+                p.step,
+                p.steps,
+                p.loss,
+                p.mse,
+                p.nce,
+                t1.elapsed().as_secs_f64()
+            );
+        }
+        last = Some(*p);
+    })
+    .expect("train");
+    let train_s = t1.elapsed().as_secs_f64();
+    let encode = |views: &[View], e: &QueryEncoder| -> Vec<FeatureMap> {
+        views
+            .iter()
+            .map(|v| e.encode(&v.image).expect("encode"))
+            .collect()
+    };
+    let q_fit = encode(&fit, &enc);
+    let q_test = encode(&test, &enc);
+    let o_fit: Vec<FeatureMap> = fit.iter().map(|v| v.oracle.clone()).collect();
+    let o_test: Vec<FeatureMap> = test.iter().map(|v| v.oracle.clone()).collect();
+    let sel = greedy(&fit, &q_fit, &matcher, 5);
+    let sel_oracle = greedy(&fit, &o_fit, &matcher, 5);
+    let p = last.expect("steps");
+    println!(
+        "config {}",
+        serde_json::to_string(&cfg).expect("config JSON")
+    );
+    println!(
+        "training: {} steps in {train_s:.0} s, final loss {:.3} (mse {:.3}, nce {:.3}); greedy dims {sel:?} (perfect encoder: {sel_oracle:?})",
+        p.steps, p.loss, p.mse, p.nce
+    );
+    println!(
+        "| query | dims | views | matches (true pose) | correct <= 2 px | precision | PnP inliers | localized <= 1 m / 5 deg from 3 m / 5 deg starts | corr (min / median) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for (name, dims_name, dims) in [
+        ("encoder", "greedy-5", &sel),
+        ("encoder", "all-47", &all),
+        ("perfect", "greedy-5", &sel_oracle),
+        ("perfect", "encoder's greedy-5", &sel),
+    ] {
+        for (vname, views, q) in [
+            (
+                "train",
+                &fit,
+                if name == "encoder" { &q_fit } else { &o_fit },
+            ),
+            (
+                "test",
+                &test,
+                if name == "encoder" { &q_test } else { &o_test },
+            ),
+        ] {
+            let s = score(views, q, dims, &matcher, true);
+            let mut c = correlations(views, q, dims);
+            c.sort_by(f64::total_cmp);
+            println!(
+                "| {name} | {dims_name} | {vname} | {:.0} | {:.0} | {:.3} | {:.1} | {}/{} | {:.2} / {:.2} |",
+                s.matches,
+                s.correct,
+                s.correct / s.matches.max(1.0),
+                s.inliers,
+                s.localized,
+                s.tries,
+                c[0],
+                c[c.len() / 2]
+            );
+        }
+    }
+}
