@@ -93,6 +93,11 @@ struct EvalArgs {
     /// Encoder loss weights `w_reg,w_nce`.
     #[arg(long, default_value = "1,0.5")]
     encoder_loss: String,
+    /// Further encoder training settings as `EncoderTrainConfig` JSON (missing fields: the
+    /// defaults; `--encoder-steps`, `--encoder-loss` and the seed override it), e.g.
+    /// `'{"net":{"width":64},"head_phase":{"steps":2000}}'`.
+    #[arg(long)]
+    encoder_config: Option<String>,
     /// Save the trained encoder here.
     #[arg(long)]
     encoder_out: Option<PathBuf>,
@@ -319,14 +324,18 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
                     target: t,
                 })
                 .collect();
+            let base: EncoderTrainConfig = match &args.encoder_config {
+                Some(j) => serde_json::from_str(j).context("--encoder-config")?,
+                None => EncoderTrainConfig::default(),
+            };
             let cfg = EncoderTrainConfig {
                 steps: args.encoder_steps,
                 w_reg,
                 w_nce,
                 seed: args.scene.seed,
-                ..Default::default()
+                ..base
             };
-            let bar = progress::bar(cfg.steps as u64, "encoder", quiet);
+            let bar = progress::bar(cfg.total_steps() as u64, "encoder", quiet);
             let t0 = Instant::now();
             let mut last = None;
             let enc = train_encoder(&samples, all.clone(), stats.clone(), &cfg, &mut |p| {
@@ -337,8 +346,9 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
             bar.finish_and_clear();
             if let Some(p) = last {
                 println!(
-                    "encoder: {} steps (w_reg {w_reg}, w_nce {w_nce}) in {:.0} s, final loss {:.3} (mse {:.3}, nce {:.3})",
-                    p.steps,
+                    "encoder: {} + {} head steps (w_reg {w_reg}, w_nce {w_nce}) in {:.0} s, final loss {:.3} (mse {:.3}, nce {:.3})",
+                    cfg.steps,
+                    cfg.head_phase.steps,
                     t0.elapsed().as_secs_f64(),
                     p.loss,
                     p.mse,
@@ -516,13 +526,67 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
             "failures": r.failures, "queries": r.t_err.len(),
         }));
     }
+    // Fit vs generalisation: matching from the true pose on training and test views.
+    println!(
+        "from the true pose (fit vs generalisation): | feature set | train precision | train inliers | test precision | test inliers |"
+    );
+    println!("|---|---|---|---|---|");
+    let mut truth_json = Vec::new();
+    let truth_maps = |views: &[TrainingView]| -> Result<Vec<_>> {
+        views
+            .iter()
+            .map(|v| {
+                Ok(render_map_points(
+                    &sc.renderer,
+                    &v.camera,
+                    &v.cam_from_world,
+                    ENCODER_STRIDE,
+                    &all,
+                    0.5,
+                )?)
+            })
+            .collect()
+    };
+    let train_truth = truth_maps(&sc.train)?;
+    let test_truth = truth_maps(&sc.test)?;
+    for r in &rows {
+        let mut cells = Vec::new();
+        for (views, qmaps, maps) in [
+            (&sc.train, &train_maps, &train_truth),
+            (&sc.test, &test_maps, &test_truth),
+        ] {
+            let (mut prec, mut inl) = (Vec::new(), Vec::new());
+            for ((v, q), m) in views.iter().zip(qmaps).zip(maps) {
+                let query = QueryFeatures::new(q.clone(), ENCODER_STRIDE as f64);
+                let tm = timed_match(&matcher, &query, m, Some(&r.dims))?;
+                let n = tm.matches.len();
+                let ok = correct_matches(&tm.matches, &v.camera, &v.cam_from_world, 2.0);
+                prec.push(if n == 0 { 0.0 } else { ok as f64 / n as f64 });
+                let mut srng = ChaCha8Rng::seed_from_u64(7);
+                inl.push(
+                    solve_pose(&tm.matches, &v.camera, &solver, &mut srng)
+                        .map_or(0.0, |res| res.inliers.iter().filter(|&&b| b).count() as f64),
+                );
+            }
+            let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+            cells.push((mean(&prec), med(&inl)));
+        }
+        println!(
+            "| {} | {:.3} | {:.0} | {:.3} | {:.0} |",
+            r.name, cells[0].0, cells[0].1, cells[1].0, cells[1].1
+        );
+        truth_json.push(serde_json::json!({
+            "set": r.name, "train_precision_mean": cells[0].0, "train_inliers_median": cells[0].1,
+            "test_precision_mean": cells[1].0, "test_inliers_median": cells[1].1,
+        }));
+    }
     if let Some(path) = &args.json {
         let doc = serde_json::json!({
             "preset": args.scene.preset, "seed": args.scene.seed,
             "query_source": match args.query { QuerySource::Oracle => "oracle", QuerySource::Encoder => "encoder" },
             "subcell": args.subcell.name(), "window_px": args.window_px,
             "start_t_median_m": med(&start_t), "start_r_median_deg": med(&start_r),
-            "rows": json,
+            "rows": json, "from_true_pose": truth_json,
         });
         matloc_data::fsutil::write_atomic(path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     }
