@@ -80,23 +80,29 @@ fn main() {
         let (e2, r2) = run(truth);
         // Oracle query features: the block's own NeRF rendered at the true pose (a perfect
         // encoder), from the place hypothesis: isolates NeRF features + depth from the encoder.
+        let hb = h.block.unwrap_or(0);
         let oracle = matloc_pipeline::diagnostics::RenderedQueryEncoder {
-            renderer: &map.blocks.0[0].renderer,
+            renderer: &map.blocks.0[hb].renderer,
             camera,
             cam_from_world: f.cam_from_world,
             dims: (0..47).collect(),
             stride: 4,
         };
-        let blk0 = &map.blocks.0[0];
         let fixed = FixedPlace(vec![h.clone()]);
         let loc = matloc_pipeline::Localizer {
             place: &fixed,
-            blocks: vec![matloc_pipeline::LocalizerBlock {
-                renderer: &blk0.renderer,
-                encoder: &oracle,
-                matcher: &blk0.matcher,
-                dims: blk0.dims.clone(),
-            }],
+            blocks: map
+                .blocks
+                .0
+                .iter()
+                .enumerate()
+                .map(|(b, blk)| matloc_pipeline::LocalizerBlock {
+                    renderer: &blk.renderer,
+                    encoder: if b == hb { &oracle } else { &blk.encoder },
+                    matcher: &blk.matcher,
+                    dims: blk.dims.clone(),
+                })
+                .collect(),
             solver: &solver,
             options: options.clone(),
         };
@@ -111,25 +117,32 @@ fn main() {
         let gt_depth = matloc_data::images::load_frame_depth(&dataset, f, 1)
             .ok()
             .flatten();
-        let depth_err = gt_depth.map(|g| {
-            let r = matloc_match::gt::ViewRenderer::render_view(
-                &map.blocks.0[0].renderer,
-                &camera,
-                &f.cam_from_world,
-                4,
-                &[],
-            )
-            .expect("render");
-            let mut rel = Vec::new();
-            for i in 0..r.cols * r.rows {
-                let (x, y) = (i % r.cols * 4 + 2, i / r.cols * 4 + 2);
-                let gd = g.pixel(x, y)[0];
-                if gd > 0.0 && gd.is_finite() && r.accumulation[i] > 0.5 {
-                    rel.push(((r.depth_z[i] - gd) / gd).abs() as f64);
+        let depth_err_of = |blk: usize| {
+            gt_depth.as_ref().map(|g| {
+                let r = matloc_match::gt::ViewRenderer::render_view(
+                    &map.blocks.0[blk].renderer,
+                    &camera,
+                    &f.cam_from_world,
+                    4,
+                    &[],
+                )
+                .expect("render");
+                let mut rel = Vec::new();
+                for i in 0..r.cols * r.rows {
+                    let (x, y) = (i % r.cols * 4 + 2, i / r.cols * 4 + 2);
+                    let gd = g.pixel(x, y)[0];
+                    if gd > 0.0 && gd.is_finite() && r.accumulation[i] > 0.5 {
+                        rel.push(((r.depth_z[i] - gd) / gd).abs() as f64);
+                    }
                 }
-            }
-            matloc_core::metrics::median(&rel).unwrap_or(f64::NAN)
-        });
+                matloc_core::metrics::median(&rel).unwrap_or(f64::NAN)
+            })
+        };
+        let depth_err = depth_err_of(hb);
+        let per_block: Vec<String> = (0..map.blocks.0.len())
+            .map(|b| format!("{:.1}", 100.0 * depth_err_of(b).unwrap_or(f64::NAN)))
+            .collect();
+        println!("  block {hb}; NeRF depth error per block at the true pose (%): {per_block:?}");
         println!(
             "  oracle features from coarse: {} ({} matches, {} inliers); NeRF median depth error {:.1} %",
             oe.map_or("-".to_string(), |e| format!("{:.2} m {:.2}°", e.0, e.1)),
@@ -139,7 +152,7 @@ fn main() {
         );
         // Encoder fit at the true pose: correlation of encoder vs rendered features per
         // selected dim over surface cells.
-        let blk = &map.blocks.0[0];
+        let blk = &map.blocks.0[hb];
         let all: Vec<usize> = (0..47).collect();
         let target = matloc_match::gt::ViewRenderer::render_view(
             &blk.renderer,
