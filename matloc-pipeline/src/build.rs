@@ -286,6 +286,14 @@ pub fn build_map(
                 ),
             })
         })?;
+        // Adam's moments (2× the weights) only serve resuming this stage, which is now done.
+        let optimizer = dir.join(matloc_render::OPTIMIZER_FILE);
+        if optimizer.exists() {
+            std::fs::remove_file(&optimizer).map_err(|e| PipelineError::Io {
+                path: optimizer.clone(),
+                source: e,
+            })?;
+        }
         // The trainer wrote its files atomically; list them (checksums) in the manifest.
         for entry in std::fs::read_dir(&dir).map_err(|e| PipelineError::Io {
             path: dir.clone(),
