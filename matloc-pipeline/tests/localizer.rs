@@ -10,10 +10,11 @@ use matloc_data::synth::{SynthConfig, World, plan_survey};
 use matloc_match::gt::ViewRenderer;
 use matloc_match::synth_view::{SynthFeatureField, SynthFeatureRenderer, SynthFieldConfig};
 use matloc_match::{MnnConfig, MnnMatcher};
+use matloc_pipeline::stages::FixedPlace;
 use matloc_pipeline::{
     LocalizeOptions, Localizer, LocalizerBlock, PipelineError, QueryFeatureEncoder,
 };
-use matloc_place::{PlaceError, PlaceHypothesis, PlacePredictor};
+use matloc_place::PlaceHypothesis;
 use matloc_pnp::LoRansacPnp;
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
@@ -52,20 +53,6 @@ impl QueryFeatureEncoder for OracleEncoder<'_> {
             }
         }
         Ok(FeatureMap::from_vec(v.cols, v.rows, self.dims.len(), data).unwrap())
-    }
-}
-
-/// Place predictor returning fixed hypotheses.
-struct FixedPlace(Vec<PlaceHypothesis>);
-
-impl PlacePredictor for FixedPlace {
-    fn predict(
-        &self,
-        _image: &Image<f32>,
-        _camera: &Camera,
-        k: usize,
-    ) -> Result<Vec<PlaceHypothesis>, PlaceError> {
-        Ok(self.0.iter().take(k).cloned().collect())
     }
 }
 
