@@ -68,13 +68,38 @@ impl Linear {
     /// Forward for a batch (`x`: `n × n_in`, `y`: `n × O`), optionally ReLU.
     ///
     /// `O` must equal `n_out`; making it a const lets the accumulators live in registers.
-    /// Two points are processed together so each weight row load feeds two FMAs.
+    /// Register-blocked: a tile of [`TILE_P`] points × 16 outputs (12 vector accumulators)
+    /// per pass over the inputs, so each weight load feeds 6 FMAs and nothing spills.
     #[inline]
     pub fn forward<const O: usize>(&self, x: &[f32], y: &mut [f32], relu: bool) {
         assert_eq!(
             self.n_out, O,
             "Linear::forward called with the wrong output width"
         );
+        let ni = self.n_in;
+        let bias: &[f32; O] = self.b.as_slice().try_into().expect("bias length");
+        if !O.is_multiple_of(16) {
+            return self.forward_narrow::<O>(x, y, relu);
+        }
+        let mut xs = x.chunks_exact(TILE_P * ni);
+        let mut ys = y.chunks_exact_mut(TILE_P * O);
+        for (xt, yt) in (&mut xs).zip(&mut ys) {
+            fwd_tile::<TILE_P, O>(&self.w, bias, xt, ni, yt, relu);
+        }
+        let (xr, yr) = (xs.remainder(), ys.into_remainder());
+        match yr.len() / O {
+            0 => {}
+            1 => fwd_tile::<1, O>(&self.w, bias, xr, ni, yr, relu),
+            2 => fwd_tile::<2, O>(&self.w, bias, xr, ni, yr, relu),
+            3 => fwd_tile::<3, O>(&self.w, bias, xr, ni, yr, relu),
+            4 => fwd_tile::<4, O>(&self.w, bias, xr, ni, yr, relu),
+            _ => fwd_tile::<5, O>(&self.w, bias, xr, ni, yr, relu),
+        }
+    }
+
+    /// Forward for output widths that are not a multiple of 16 (the 3-wide RGB head): all
+    /// outputs of two points in registers.
+    fn forward_narrow<const O: usize>(&self, x: &[f32], y: &mut [f32], relu: bool) {
         let ni = self.n_in;
         let bias: &[f32; O] = self.b.as_slice().try_into().expect("bias length");
         let mut xs = x.chunks_exact(2 * ni);
@@ -120,13 +145,15 @@ impl Linear {
         }
     }
 
-    /// Transposed weights (`n_out × n_in`), the layout the input-gradient kernel wants.
+    /// Transposed weights, `n_out` rows of `n_in` rounded up to a multiple of 8 (zero
+    /// padded): the layout the input-gradient kernel wants.
     pub fn transposed(&self) -> Vec<f32> {
         let (ni, no) = (self.n_in, self.n_out);
-        let mut t = vec![0f32; ni * no];
+        let stride = ni.next_multiple_of(8);
+        let mut t = vec![0f32; stride * no];
         for i in 0..ni {
             for o in 0..no {
-                t[o * ni + i] = self.w[i * no + o];
+                t[o * stride + i] = self.w[i * no + o];
             }
         }
         t
@@ -155,6 +182,7 @@ impl Linear {
     ) {
         match self.n_out {
             64 => self.weight_grad::<64>(x, dy, grad),
+            32 => self.weight_grad::<32>(x, dy, grad),
             16 => self.weight_grad::<16>(x, dy, grad),
             _ => self.weight_grad_generic(x, dy, grad),
         }
@@ -163,8 +191,8 @@ impl Linear {
         }
     }
 
-    /// `∂L/∂W += Xᵀ·dY` with two rows of `∂L/∂W` held in registers across the whole batch,
-    /// so the inner loop has no stores.
+    /// `∂L/∂W += Xᵀ·dY`, register-blocked: a tile of 6 inputs × 16 outputs of `∂L/∂W`
+    /// (12 vector accumulators) is held in registers across the whole batch.
     fn weight_grad<const O: usize>(&self, x: &[f32], dy: &[f32], grad: &mut LinearGrad) {
         let ni = self.n_in;
         let n = dy.len() / O;
@@ -177,36 +205,19 @@ impl Linear {
         for (g, v) in grad.b.iter_mut().zip(gb) {
             *g += v;
         }
-        let mut i = 0;
-        while i + 1 < ni {
-            let mut a = [0f32; O];
-            let mut b = [0f32; O];
-            for p in 0..n {
-                let xa = x[p * ni + i];
-                let xb = x[p * ni + i + 1];
-                let d: &[f32; O] = dy[p * O..(p + 1) * O].try_into().expect("row");
-                for o in 0..O {
-                    a[o] = xa.mul_add(d[o], a[o]);
-                    b[o] = xb.mul_add(d[o], b[o]);
-                }
-            }
-            for o in 0..O {
-                grad.w[i * O + o] += a[o];
-                grad.w[(i + 1) * O + o] += b[o];
-            }
-            i += 2;
+        let x = &x[..n * ni];
+        let mut i0 = 0;
+        while i0 + 6 <= ni {
+            wgrad_tile::<6, O>(x, ni, i0, dy, &mut grad.w);
+            i0 += 6;
         }
-        if i < ni {
-            let mut a = [0f32; O];
-            for p in 0..n {
-                let xa = x[p * ni + i];
-                for o in 0..O {
-                    a[o] = xa.mul_add(dy[p * O + o], a[o]);
-                }
-            }
-            for o in 0..O {
-                grad.w[i * O + o] += a[o];
-            }
+        match ni - i0 {
+            0 => {}
+            1 => wgrad_tile::<1, O>(x, ni, i0, dy, &mut grad.w),
+            2 => wgrad_tile::<2, O>(x, ni, i0, dy, &mut grad.w),
+            3 => wgrad_tile::<3, O>(x, ni, i0, dy, &mut grad.w),
+            4 => wgrad_tile::<4, O>(x, ni, i0, dy, &mut grad.w),
+            _ => wgrad_tile::<5, O>(x, ni, i0, dy, &mut grad.w),
         }
     }
 
@@ -225,39 +236,233 @@ impl Linear {
     }
 }
 
-/// `dX = dY·Wᵀ` using the transposed weights `wt` (`n_out × n_in`): 8 outputs at a time in
-/// one vector accumulator, one broadcast-FMA per output unit, no horizontal reductions.
+/// Points per register tile of the forward and input-gradient kernels.
+const TILE_P: usize = 6;
+
+/// Eight lanes; the kernels below are written so each `[f32; 8]` becomes one AVX register.
+type V8 = [f32; 8];
+
+#[inline(always)]
+fn v8(s: &[f32]) -> V8 {
+    s[..8].try_into().expect("8 lanes")
+}
+
+/// `acc += a · w` lane-wise.
+#[inline(always)]
+fn fma8(acc: &mut V8, a: f32, w: &V8) {
+    for l in 0..8 {
+        acc[l] = a.mul_add(w[l], acc[l]);
+    }
+}
+
+/// `y = x·W + b` for `P` points (`x`: `P × ni`, `y`: `P × O`, `O` a multiple of 16).
+#[inline(always)]
+fn fwd_tile<const P: usize, const O: usize>(
+    w: &[f32],
+    bias: &[f32; O],
+    x: &[f32],
+    ni: usize,
+    y: &mut [f32],
+    relu: bool,
+) {
+    let rows: [&[f32]; P] = std::array::from_fn(|p| &x[p * ni..(p + 1) * ni]);
+    let w = &w[..ni * O];
+    for ob in (0..O).step_by(16) {
+        let b0 = v8(&bias[ob..]);
+        let b1 = v8(&bias[ob + 8..]);
+        let mut acc = [[b0, b1]; P];
+        for i in 0..ni {
+            let wr = &w[i * O + ob..i * O + ob + 16];
+            let w0 = v8(wr);
+            let w1 = v8(&wr[8..]);
+            for p in 0..P {
+                let xv = rows[p][i];
+                fma8(&mut acc[p][0], xv, &w0);
+                fma8(&mut acc[p][1], xv, &w1);
+            }
+        }
+        for (p, a) in acc.iter_mut().enumerate() {
+            if relu {
+                for v in a.iter_mut().flatten() {
+                    *v = v.max(0.0);
+                }
+            }
+            y[p * O + ob..p * O + ob + 8].copy_from_slice(&a[0]);
+            y[p * O + ob + 8..p * O + ob + 16].copy_from_slice(&a[1]);
+        }
+    }
+}
+
+/// `∂L/∂W[i0..i0+IB, :] += X[:, i0..i0+IB]ᵀ·dY` over all points (`O` a multiple of 16).
+#[inline(always)]
+fn wgrad_tile<const IB: usize, const O: usize>(
+    x: &[f32],
+    ni: usize,
+    i0: usize,
+    dy: &[f32],
+    gw: &mut [f32],
+) {
+    for ob in (0..O).step_by(16) {
+        let mut acc = [[[0f32; 8]; 2]; IB];
+        for (xr, dr) in x.chunks_exact(ni).zip(dy.chunks_exact(O)) {
+            let xr = &xr[i0..i0 + IB];
+            let d0 = v8(&dr[ob..]);
+            let d1 = v8(&dr[ob + 8..]);
+            for k in 0..IB {
+                fma8(&mut acc[k][0], xr[k], &d0);
+                fma8(&mut acc[k][1], xr[k], &d1);
+            }
+        }
+        for (k, a) in acc.iter().enumerate() {
+            let g = &mut gw[(i0 + k) * O + ob..(i0 + k) * O + ob + 16];
+            for (gv, av) in g.iter_mut().zip(a.iter().flatten()) {
+                *gv += av;
+            }
+        }
+    }
+}
+
+/// `dX = dY·Wᵀ` for `P` points and the `NV × 8` inputs from `i0`, from the padded
+/// transposed weights `wt` (row stride `stride`); writes the first `width` of them.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn igrad_tile<const P: usize, const NV: usize>(
+    wt: &[f32],
+    stride: usize,
+    no: usize,
+    i0: usize,
+    width: usize,
+    dy: &[f32],
+    dx: &mut [f32],
+    ni: usize,
+) {
+    let rows: [&[f32]; P] = std::array::from_fn(|p| &dy[p * no..(p + 1) * no]);
+    let mut acc = [[[0f32; 8]; NV]; P];
+    for o in 0..no {
+        let wr = &wt[o * stride + i0..o * stride + i0 + 8 * NV];
+        let wv: [V8; NV] = std::array::from_fn(|v| v8(&wr[8 * v..]));
+        for p in 0..P {
+            let d = rows[p][o];
+            for v in 0..NV {
+                fma8(&mut acc[p][v], d, &wv[v]);
+            }
+        }
+    }
+    for (p, a) in acc.iter().enumerate() {
+        let out = &mut dx[p * ni + i0..p * ni + i0 + width];
+        for (ov, av) in out.iter_mut().zip(a.iter().flatten()) {
+            *ov = *av;
+        }
+    }
+}
+
+/// `dX = dY·Wᵀ` for `P` points, all inputs.
+#[inline(always)]
+fn igrad_points<const P: usize>(
+    ni: usize,
+    no: usize,
+    wt: &[f32],
+    stride: usize,
+    dy: &[f32],
+    dx: &mut [f32],
+) {
+    let mut i0 = 0;
+    while i0 + 16 <= ni {
+        igrad_tile::<P, 2>(wt, stride, no, i0, 16, dy, dx, ni);
+        i0 += 16;
+    }
+    while i0 < ni {
+        let width = (ni - i0).min(8);
+        igrad_tile::<P, 1>(wt, stride, no, i0, width, dy, dx, ni);
+        i0 += 8;
+    }
+}
+
+/// `dX = dY·Wᵀ` using the padded transposed weights `wt` of [`Linear::transposed`]:
+/// tiles of 6 points × 16 inputs, one broadcast-FMA per output unit and point.
 fn input_grad(ni: usize, no: usize, wt: &[f32], dy: &[f32], dx: &mut [f32]) {
-    for (dxr, dyr) in dx.chunks_exact_mut(ni).zip(dy.chunks_exact(no)) {
-        let mut i0 = 0;
-        while i0 + 16 <= ni {
-            let mut a = [0f32; 16];
-            for (o, &d) in dyr.iter().enumerate() {
-                let w: &[f32; 16] = wt[o * ni + i0..o * ni + i0 + 16].try_into().expect("w");
-                for l in 0..16 {
-                    a[l] = d.mul_add(w[l], a[l]);
+    let stride = ni.next_multiple_of(8);
+    assert!(wt.len() >= stride * no, "transposed weights too short");
+    let mut dys = dy.chunks_exact(TILE_P * no);
+    let mut dxs = dx.chunks_exact_mut(TILE_P * ni);
+    for (d, x) in (&mut dys).zip(&mut dxs) {
+        igrad_points::<TILE_P>(ni, no, wt, stride, d, x);
+    }
+    let (d, x) = (dys.remainder(), dxs.into_remainder());
+    match x.len() / ni.max(1) {
+        0 => {}
+        1 => igrad_points::<1>(ni, no, wt, stride, d, x),
+        2 => igrad_points::<2>(ni, no, wt, stride, d, x),
+        3 => igrad_points::<3>(ni, no, wt, stride, d, x),
+        4 => igrad_points::<4>(ni, no, wt, stride, d, x),
+        _ => igrad_points::<5>(ni, no, wt, stride, d, x),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    /// The blocked kernels against a plain triple loop, for the layer shapes of the field
+    /// and batch sizes that exercise every remainder path.
+    #[test]
+    fn blocked_kernels_match_naive() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for (ni, no) in [
+            (32, 64),
+            (64, 16),
+            (39, 64),
+            (64, 64),
+            (64, 3),
+            (5, 16),
+            (13, 32),
+        ] {
+            let l = Linear {
+                b: (0..no).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                ..Linear::new(ni, no, 1.0, &mut rng)
+            };
+            for n in [0usize, 1, 5, 6, 7, 13, 128] {
+                let x: Vec<f32> = (0..n * ni).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let dy: Vec<f32> = (0..n * no).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let mut y = vec![0f32; n * no];
+                match no {
+                    64 => l.forward::<64>(&x, &mut y, true),
+                    32 => l.forward::<32>(&x, &mut y, true),
+                    16 => l.forward::<16>(&x, &mut y, true),
+                    _ => l.forward::<3>(&x, &mut y, true),
+                }
+                let mut g = l.zero_grad();
+                let mut dx = vec![f32::NAN; n * ni];
+                l.backward(&x, &dy, Some(&mut dx), &mut g);
+                for p in 0..n {
+                    for o in 0..no {
+                        let r: f32 = l.b[o]
+                            + (0..ni)
+                                .map(|i| x[p * ni + i] * l.w[i * no + o])
+                                .sum::<f32>();
+                        assert!(
+                            (y[p * no + o] - r.max(0.0)).abs() < 1e-4,
+                            "fwd {ni}x{no} n={n}"
+                        );
+                    }
+                    for i in 0..ni {
+                        let r: f32 = (0..no).map(|o| dy[p * no + o] * l.w[i * no + o]).sum();
+                        assert!((dx[p * ni + i] - r).abs() < 1e-4, "dx {ni}x{no} n={n}");
+                    }
+                }
+                for i in 0..ni {
+                    for o in 0..no {
+                        let r: f32 = (0..n).map(|p| x[p * ni + i] * dy[p * no + o]).sum();
+                        assert!((g.w[i * no + o] - r).abs() < 1e-3, "dw {ni}x{no} n={n}");
+                    }
+                }
+                for o in 0..no {
+                    let r: f32 = (0..n).map(|p| dy[p * no + o]).sum();
+                    assert!((g.b[o] - r).abs() < 1e-3, "db {ni}x{no} n={n}");
                 }
             }
-            dxr[i0..i0 + 16].copy_from_slice(&a);
-            i0 += 16;
-        }
-        while i0 + 8 <= ni {
-            let mut a = [0f32; 8];
-            for (o, &d) in dyr.iter().enumerate() {
-                let w: &[f32; 8] = wt[o * ni + i0..o * ni + i0 + 8].try_into().expect("w");
-                for l in 0..8 {
-                    a[l] = d.mul_add(w[l], a[l]);
-                }
-            }
-            dxr[i0..i0 + 8].copy_from_slice(&a);
-            i0 += 8;
-        }
-        for i in i0..ni {
-            let mut a = 0f32;
-            for (o, &d) in dyr.iter().enumerate() {
-                a = d.mul_add(wt[o * ni + i], a);
-            }
-            dxr[i] = a;
         }
     }
 }
