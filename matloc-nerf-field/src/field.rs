@@ -80,6 +80,11 @@ pub struct TrainCache {
     h2: Vec<f32>,
     rgb: Vec<f32>,
     density: Vec<f32>,
+    /// Scratch of the hash-grid passes and `∂L/∂f_pos`, kept so that a cache reused across
+    /// steps ([`NerfactoField::forward_train_into`], [`NerfactoField::backward_reusing`])
+    /// does not allocate (and page-fault) ~300 MB of fresh memory every step.
+    scratch_lvl: Vec<f32>,
+    scratch_d_enc: Vec<f32>,
 }
 
 impl TrainCache {
@@ -282,6 +287,20 @@ impl NerfactoField {
         dirs: &[[f32; 3]],
         appearance: &[u32],
     ) -> Result<TrainCache, FieldError> {
+        let mut c = TrainCache::default();
+        self.forward_train_into(points, dirs, appearance, &mut c)?;
+        Ok(c)
+    }
+
+    /// [`Self::forward_train`] into an existing cache, reusing its buffers (a training loop
+    /// keeps one cache across steps).
+    pub fn forward_train_into(
+        &self,
+        points: &[[f32; 3]],
+        dirs: &[[f32; 3]],
+        appearance: &[u32],
+        c: &mut TrainCache,
+    ) -> Result<(), FieldError> {
         let n = points.len();
         check_len("dirs", n, dirs.len())?;
         if !appearance.is_empty() {
@@ -298,38 +317,38 @@ impl NerfactoField {
         }
         let ci = self.config.colour_input_dim();
         let sb = self.config.scene_box;
-        let unit: Vec<[f32; 3]> = points
-            .par_iter()
-            .map(|p| contract_to_unit(&sb, *p))
-            .collect();
-        let app = if appearance.is_empty() {
-            vec![NO_APPEARANCE; n]
+        let mut unit = std::mem::take(&mut c.unit);
+        unit.clear();
+        unit.par_extend(points.par_iter().map(|p| contract_to_unit(&sb, *p)));
+        let mut app = std::mem::take(&mut c.app);
+        app.clear();
+        if appearance.is_empty() {
+            app.resize(n, NO_APPEARANCE);
         } else {
-            appearance.to_vec()
-        };
-        let mut c = TrainCache {
-            enc: vec![0.0; n * F_POS_DIM],
-            geo_h: vec![0.0; n * HIDDEN],
-            geo_out: vec![0.0; n * GEO_OUT],
-            col_in: vec![0.0; n * ci],
-            h1: vec![0.0; n * HIDDEN],
-            h2: vec![0.0; n * HIDDEN],
-            rgb: vec![0.0; n * 3],
-            density: vec![0.0; n],
-            unit: Vec::new(),
-            app: Vec::new(),
-        };
+            app.extend_from_slice(appearance);
+        }
+        // Every element of these is overwritten below, so stale values need no clearing;
+        // `resize` only zero-fills growth.
+        c.enc.resize(n * F_POS_DIM, 0.0);
+        c.geo_h.resize(n * HIDDEN, 0.0);
+        c.geo_out.resize(n * GEO_OUT, 0.0);
+        c.col_in.resize(n * ci, 0.0);
+        c.h1.resize(n * HIDDEN, 0.0);
+        c.h2.resize(n * HIDDEN, 0.0);
+        c.rgb.resize(n * 3, 0.0);
+        c.density.resize(n, 0.0);
         let fallback = self.fallback_embedding();
-        self.grid.encode(&unit, &mut c.enc);
+        self.grid
+            .encode_with_scratch(&unit, &mut c.enc, &mut c.scratch_lvl);
         {
-            let chunks = Self::split_chunks(&mut c, &unit, dirs, &app, ci);
+            let chunks = Self::split_chunks(c, &unit, dirs, &app, ci);
             chunks
                 .into_par_iter()
                 .for_each(|ch| self.forward_chunk(ch, ci, &fallback));
         }
         c.unit = unit;
         c.app = app;
-        Ok(c)
+        Ok(())
     }
 
     fn split_chunks<'a>(
@@ -422,6 +441,41 @@ impl NerfactoField {
         d_rgb: &[f32],
         grads: &mut FieldGrads,
     ) -> Result<(), FieldError> {
+        self.backward_impl(
+            cache,
+            d_density,
+            d_rgb,
+            grads,
+            &mut Vec::new(),
+            &mut Vec::new(),
+        )
+    }
+
+    /// [`Self::backward`] using (and keeping) the cache's scratch buffers.
+    pub fn backward_reusing(
+        &self,
+        cache: &mut TrainCache,
+        d_density: &[f32],
+        d_rgb: &[f32],
+        grads: &mut FieldGrads,
+    ) -> Result<(), FieldError> {
+        let mut d_enc = std::mem::take(&mut cache.scratch_d_enc);
+        let mut d_lvl = std::mem::take(&mut cache.scratch_lvl);
+        let r = self.backward_impl(cache, d_density, d_rgb, grads, &mut d_enc, &mut d_lvl);
+        cache.scratch_d_enc = d_enc;
+        cache.scratch_lvl = d_lvl;
+        r
+    }
+
+    fn backward_impl(
+        &self,
+        cache: &TrainCache,
+        d_density: &[f32],
+        d_rgb: &[f32],
+        grads: &mut FieldGrads,
+        d_enc: &mut Vec<f32>,
+        d_lvl: &mut Vec<f32>,
+    ) -> Result<(), FieldError> {
         let n = cache.len();
         check_len("d_density", n, d_density.len())?;
         check_len("d_rgb", 3 * n, d_rgb.len())?;
@@ -429,7 +483,8 @@ impl NerfactoField {
         let a_dim = self.config.appearance_dim;
         let scale = self.density_scale();
         let k = MLP_CHUNK;
-        let mut d_enc = vec![0f32; n * F_POS_DIM];
+        // Fully overwritten by the geometry MLP's input gradient, so not cleared.
+        d_enc.resize(n * F_POS_DIM, 0.0);
         let wt_geo = [self.geo[0].transposed(), self.geo[1].transposed()];
         let wt_col = [
             self.col[0].transposed(),
@@ -547,7 +602,8 @@ impl NerfactoField {
                 *x += y;
             }
         }
-        self.grid.backward(&cache.unit, &d_enc, &mut grads.table);
+        self.grid
+            .backward_with_scratch(&cache.unit, d_enc, &mut grads.table, d_lvl);
         Ok(())
     }
 }

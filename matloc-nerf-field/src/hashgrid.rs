@@ -204,10 +204,23 @@ impl HashGrid {
     /// table (≤ 4 MB at T = 2^19) then stays in L3 during its sweep, whereas visiting all 16
     /// levels per small chunk of points cycles 64 MB through the cache and misses to DRAM.
     pub fn encode(&self, points: &[[f32; 3]], out: &mut [f32]) {
+        self.encode_with_scratch(points, out, &mut Vec::new());
+    }
+
+    /// [`Self::encode`] with the level-major intermediate kept in `scratch` (resized as
+    /// needed), so repeated calls do not allocate and page-fault fresh memory.
+    pub fn encode_with_scratch(
+        &self,
+        points: &[[f32; 3]],
+        out: &mut [f32],
+        scratch: &mut Vec<f32>,
+    ) {
         debug_assert_eq!(out.len(), points.len() * F_POS_DIM);
         let n = points.len();
-        let mut lvl = vec![0f32; n * F_POS_DIM];
-        self.encode_level_major(points, &mut lvl);
+        // Every element is overwritten below, so stale contents need no clearing.
+        scratch.resize(n * F_POS_DIM, 0.0);
+        self.encode_level_major(points, &mut scratch[..]);
+        let lvl = &scratch[..];
         out.par_chunks_mut(FWD_CHUNK * F_POS_DIM)
             .enumerate()
             .for_each(|(ci, o)| {
@@ -252,12 +265,24 @@ impl HashGrid {
     /// (`points.len() × 32`). Parallel over levels: each level's gradient slice belongs to one
     /// task, so there are no atomics and no per-thread copies of the table.
     pub fn backward(&self, points: &[[f32; 3]], d_out: &[f32], grad: &mut [f32]) {
+        self.backward_with_scratch(points, d_out, grad, &mut Vec::new());
+    }
+
+    /// [`Self::backward`] with its level-major copy of `d_out` kept in `scratch`.
+    pub fn backward_with_scratch(
+        &self,
+        points: &[[f32; 3]],
+        d_out: &[f32],
+        grad: &mut [f32],
+        scratch: &mut Vec<f32>,
+    ) {
         debug_assert_eq!(d_out.len(), points.len() * F_POS_DIM);
         debug_assert_eq!(grad.len(), self.table.len());
         let n = points.len();
         // Level-major copy of the incoming gradient: each level task then streams 8 bytes
-        // per point instead of touching a 128-byte row.
-        let mut d_lvl = vec![0f32; n * F_POS_DIM];
+        // per point instead of touching a 128-byte row. Fully overwritten, so not cleared.
+        scratch.resize(n * F_POS_DIM, 0.0);
+        let d_lvl = &mut scratch[..];
         d_lvl
             .par_chunks_mut(2 * n)
             .enumerate()

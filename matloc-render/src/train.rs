@@ -1,6 +1,8 @@
 use std::time::Instant;
 
-use matloc_nerf_field::{Adam, AdamConfig, ExponentialDecay, FieldGrads, NerfactoField};
+use matloc_nerf_field::{
+    Adam, AdamConfig, ExponentialDecay, FieldGrads, NerfactoField, TrainCache,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -147,6 +149,8 @@ pub struct Trainer {
     bg_adam: Adam,
     step: u64,
     rng: ChaCha8Rng,
+    /// Activations of the last step, kept so their buffers are reused by the next one.
+    cache: TrainCache,
 }
 
 impl Trainer {
@@ -178,6 +182,7 @@ impl Trainer {
             bg_adam: Adam::new(config.adam, &[3]),
             step: 0,
             rng: ChaCha8Rng::seed_from_u64(config.seed),
+            cache: TrainCache::default(),
             field,
             config,
         })
@@ -276,7 +281,9 @@ impl Trainer {
             }
         };
         let (pts, dirs, app) = samples.points(rays);
-        let cache = self.field.forward_train(&pts, &dirs, &app)?;
+        let mut cache = std::mem::take(&mut self.cache);
+        self.field
+            .forward_train_into(&pts, &dirs, &app, &mut cache)?;
         let values = SampleValues {
             sigma: cache.density(),
             rgb: cache.rgb(),
@@ -371,7 +378,8 @@ impl Trainer {
             });
         }
         self.field
-            .backward(&cache, &g.sigma, &g.rgb, &mut self.grads)?;
+            .backward_reusing(&mut cache, &g.sigma, &g.rgb, &mut self.grads)?;
+        self.cache = cache;
         let lr = self.config.schedule.lr(self.step);
         {
             let mut params = self.field.param_slices_mut();
