@@ -281,14 +281,16 @@ fn fwd_tile<const P: usize, const O: usize>(
                 fma8(&mut acc[p][1], xv, &w1);
             }
         }
-        for (p, a) in acc.iter_mut().enumerate() {
-            if relu {
-                for v in a.iter_mut().flatten() {
-                    *v = v.max(0.0);
+        // Constant-index epilogue: iterator adaptors over `acc` made LLVM keep a stack copy
+        // of every accumulator updated in the inner loop (12 extra stores per input).
+        for p in 0..P {
+            let out = &mut y[p * O + ob..p * O + ob + 16];
+            for v in 0..2 {
+                for l in 0..8 {
+                    let a = acc[p][v][l];
+                    out[8 * v + l] = if relu { a.max(0.0) } else { a };
                 }
             }
-            y[p * O + ob..p * O + ob + 8].copy_from_slice(&a[0]);
-            y[p * O + ob + 8..p * O + ob + 16].copy_from_slice(&a[1]);
         }
     }
 }
@@ -313,10 +315,12 @@ fn wgrad_tile<const IB: usize, const O: usize>(
                 fma8(&mut acc[k][1], xr[k], &d1);
             }
         }
-        for (k, a) in acc.iter().enumerate() {
+        for k in 0..IB {
             let g = &mut gw[(i0 + k) * O + ob..(i0 + k) * O + ob + 16];
-            for (gv, av) in g.iter_mut().zip(a.iter().flatten()) {
-                *gv += av;
+            for v in 0..2 {
+                for l in 0..8 {
+                    g[8 * v + l] += acc[k][v][l];
+                }
             }
         }
     }
@@ -348,10 +352,14 @@ fn igrad_tile<const P: usize, const NV: usize>(
             }
         }
     }
-    for (p, a) in acc.iter().enumerate() {
+    for p in 0..P {
         let out = &mut dx[p * ni + i0..p * ni + i0 + width];
-        for (ov, av) in out.iter_mut().zip(a.iter().flatten()) {
-            *ov = *av;
+        for v in 0..NV {
+            for l in 0..8 {
+                if 8 * v + l < width {
+                    out[8 * v + l] = acc[p][v][l];
+                }
+            }
         }
     }
 }
