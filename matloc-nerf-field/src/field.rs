@@ -609,10 +609,9 @@ impl NerfactoField {
 }
 
 fn relu_mask(h: &[f32], d: &mut [f32]) {
+    // A select rather than a conditional store, so the loop vectorises.
     for (dv, hv) in d.iter_mut().zip(h) {
-        if *hv <= 0.0 {
-            *dv = 0.0;
-        }
+        *dv = if *hv <= 0.0 { 0.0 } else { *dv };
     }
 }
 

@@ -283,15 +283,30 @@ impl HashGrid {
         // per point instead of touching a 128-byte row. Fully overwritten, so not cleared.
         scratch.resize(n * F_POS_DIM, 0.0);
         let d_lvl = &mut scratch[..];
-        d_lvl
-            .par_chunks_mut(2 * n)
+        // Transposed by point chunks: each row of `d_out` is read once (a per-level pass read
+        // all of `d_out` 16 times, using 8 bytes of every 64-byte line).
+        let mut per_chunk: Vec<Vec<&mut [f32]>> = (0..n.div_ceil(FWD_CHUNK))
+            .map(|_| Vec::with_capacity(N_LEVELS))
+            .collect();
+        for lvl in d_lvl.chunks_mut(2 * n.max(1)) {
+            for (c, piece) in lvl.chunks_mut(2 * FWD_CHUNK).enumerate() {
+                per_chunk[c].push(piece);
+            }
+        }
+        per_chunk
+            .into_par_iter()
             .enumerate()
-            .for_each(|(l, dst)| {
-                for (p, d) in dst.chunks_exact_mut(2).enumerate() {
-                    d[0] = d_out[p * F_POS_DIM + 2 * l];
-                    d[1] = d_out[p * F_POS_DIM + 2 * l + 1];
+            .for_each(|(c, mut outs)| {
+                let rows = &d_out[c * FWD_CHUNK * F_POS_DIM..];
+                let m = outs.first().map_or(0, |o| o.len() / 2);
+                for (i, row) in rows.chunks_exact(F_POS_DIM).take(m).enumerate() {
+                    for (l, o) in outs.iter_mut().enumerate() {
+                        o[2 * i] = row[2 * l];
+                        o[2 * i + 1] = row[2 * l + 1];
+                    }
                 }
             });
+        let d_lvl = &scratch[..];
         let mut slices: Vec<(&LevelInfo, &mut [f32], &[f32])> = Vec::with_capacity(N_LEVELS);
         let mut rest = grad;
         for (l, lv) in self.levels.iter().enumerate() {

@@ -184,7 +184,7 @@ impl Linear {
             64 => self.weight_grad::<64>(x, dy, grad),
             32 => self.weight_grad::<32>(x, dy, grad),
             16 => self.weight_grad::<16>(x, dy, grad),
-            _ => self.weight_grad_generic(x, dy, grad),
+            _ => self.weight_grad_narrow(x, dy, grad),
         }
         if let Some(dx) = dx {
             input_grad(self.n_in, self.n_out, wt, dy, dx);
@@ -218,6 +218,34 @@ impl Linear {
             3 => wgrad_tile::<3, O>(x, ni, i0, dy, &mut grad.w),
             4 => wgrad_tile::<4, O>(x, ni, i0, dy, &mut grad.w),
             _ => wgrad_tile::<5, O>(x, ni, i0, dy, &mut grad.w),
+        }
+    }
+
+    /// `∂L/∂W += Xᵀ·dY` for narrow outputs (the 3-wide RGB head): one output column at a
+    /// time, vectorised over inputs, summed over the batch in registers (accumulating
+    /// straight into `grad` was a chain of scalar read-modify-writes per point).
+    fn weight_grad_narrow(&self, x: &[f32], dy: &[f32], grad: &mut LinearGrad) {
+        let (ni, no) = (self.n_in, self.n_out);
+        if !ni.is_multiple_of(8) || no == 0 {
+            return self.weight_grad_generic(x, dy, grad);
+        }
+        let n = dy.len() / no;
+        let x = &x[..n * ni];
+        for o in 0..no {
+            let mut gb = 0f32;
+            for dr in dy.chunks_exact(no) {
+                gb += dr[o];
+            }
+            grad.b[o] += gb;
+            let mut i0 = 0;
+            while i0 + 32 <= ni {
+                wgrad_column_tile::<4>(x, ni, i0, dy, no, o, &mut grad.w);
+                i0 += 32;
+            }
+            while i0 < ni {
+                wgrad_column_tile::<1>(x, ni, i0, dy, no, o, &mut grad.w);
+                i0 += 8;
+            }
         }
     }
 
@@ -322,6 +350,31 @@ fn wgrad_tile<const IB: usize, const O: usize>(
                     g[8 * v + l] += acc[k][v][l];
                 }
             }
+        }
+    }
+}
+
+/// `∂L/∂W[i0..i0+8·NV, o] += X[:, i0..i0+8·NV]ᵀ·dY[:, o]` over all points.
+#[inline(always)]
+fn wgrad_column_tile<const NV: usize>(
+    x: &[f32],
+    ni: usize,
+    i0: usize,
+    dy: &[f32],
+    no: usize,
+    o: usize,
+    gw: &mut [f32],
+) {
+    let mut acc = [[0f32; 8]; NV];
+    for (xr, dr) in x.chunks_exact(ni).zip(dy.chunks_exact(no)) {
+        let d = dr[o];
+        for v in 0..NV {
+            fma8(&mut acc[v], d, &v8(&xr[i0 + 8 * v..]));
+        }
+    }
+    for v in 0..NV {
+        for l in 0..8 {
+            gw[(i0 + 8 * v + l) * no + o] += acc[v][l];
         }
     }
 }
