@@ -27,6 +27,10 @@ pub struct PnpInput<'a> {
     pub points_world: &'a [Point3<f64>],
     /// Optional match quality, higher is better (e.g. feature similarity); drives PROSAC.
     pub scores: Option<&'a [f64]>,
+    /// Inlier threshold for these matches (pixels), overriding the solver's
+    /// `ransac.max_error_px`: the caller knows how noisy its correspondences are (e.g. a
+    /// coarse first pass of a localizer versus its refinement passes).
+    pub max_error_px: Option<f64>,
 }
 
 impl<'a> PnpInput<'a> {
@@ -41,6 +45,7 @@ impl<'a> PnpInput<'a> {
             pixels,
             points_world,
             scores: None,
+            max_error_px: None,
         }
     }
 
@@ -49,6 +54,21 @@ impl<'a> PnpInput<'a> {
         self.scores = Some(scores);
         self
     }
+
+    /// The same matches with their own inlier threshold (see [`PnpInput::max_error_px`]).
+    pub fn with_max_error_px(mut self, max_error_px: f64) -> Self {
+        self.max_error_px = Some(max_error_px);
+        self
+    }
+}
+
+/// `options` with the input's threshold override applied.
+fn effective_options(options: &PnpOptions, input: &PnpInput<'_>) -> PnpOptions {
+    let mut o = options.clone();
+    if let Some(px) = input.max_error_px {
+        o.ransac.max_error_px = px;
+    }
+    o
 }
 
 /// Statistics of one solve.
@@ -274,10 +294,11 @@ fn validate_options(options: &PnpOptions) -> Result<(), PnpError> {
 impl PoseSolver for LoRansacPnp {
     fn solve(&self, input: &PnpInput<'_>, rng: &mut dyn RngCore) -> Result<PnpResult, PnpError> {
         let start = Instant::now();
-        validate_options(&self.options)?;
+        let options = effective_options(&self.options, input);
+        validate_options(&options)?;
         let prepared = prepare(input)?;
         let camera = input.camera;
-        let ropt = &self.options.ransac;
+        let ropt = &options.ransac;
         let estimator = AbsolutePoseEstimator::new(
             &prepared.normalized,
             &prepared.bearings,
@@ -314,7 +335,7 @@ impl PoseSolver for LoRansacPnp {
         let threshold_sq = ropt.max_error_px * ropt.max_error_px;
         let distortion = (!camera.is_pinhole()).then_some(camera.distortion);
         let mut refinement_iterations = 0;
-        if self.options.final_refinement {
+        if options.final_refinement {
             let inliers: Vec<usize> = (0..n)
                 .filter(|&i| pixel_error_sq(&prepared, camera, &pose, i) < threshold_sq)
                 .collect();
@@ -330,12 +351,8 @@ impl PoseSolver for LoRansacPnp {
                 fy: camera.fy,
                 distortion,
             };
-            let (refined, summary) = levenberg_marquardt(
-                &problem,
-                pose,
-                &self.options.refine.loss,
-                &self.options.refine,
-            );
+            let (refined, summary) =
+                levenberg_marquardt(&problem, pose, &options.refine.loss, &options.refine);
             pose = refined;
             refinement_iterations = summary.iterations;
         }
@@ -412,14 +429,15 @@ pub struct EpnpPnp {
 impl PoseSolver for EpnpPnp {
     fn solve(&self, input: &PnpInput<'_>, _rng: &mut dyn RngCore) -> Result<PnpResult, PnpError> {
         let start = Instant::now();
-        validate_options(&self.options)?;
+        let options = effective_options(&self.options, input);
+        validate_options(&options)?;
         let prepared = prepare(input)?;
         let camera = input.camera;
         let mut pose = crate::epnp::epnp(&prepared.normalized, &prepared.points)
             .ok_or(PnpError::Degenerate("EPnP found no pose"))?;
         let distortion = (!camera.is_pinhole()).then_some(camera.distortion);
         let mut refinement_iterations = 0;
-        if self.options.final_refinement {
+        if options.final_refinement {
             let problem = ReprojectionProblem {
                 observations: if distortion.is_some() {
                     &prepared.distorted
@@ -432,16 +450,12 @@ impl PoseSolver for EpnpPnp {
                 fy: camera.fy,
                 distortion,
             };
-            let (refined, summary) = levenberg_marquardt(
-                &problem,
-                pose,
-                &self.options.refine.loss,
-                &self.options.refine,
-            );
+            let (refined, summary) =
+                levenberg_marquardt(&problem, pose, &options.refine.loss, &options.refine);
             pose = refined;
             refinement_iterations = summary.iterations;
         }
-        let threshold_sq = self.options.ransac.max_error_px.powi(2);
+        let threshold_sq = options.ransac.max_error_px.powi(2);
         let mut inliers = vec![false; input.pixels.len()];
         let (mut num_inliers, mut score) = (0, 0.0);
         for i in 0..prepared.points.len() {

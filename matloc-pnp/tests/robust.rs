@@ -456,3 +456,38 @@ fn success_rate_large_batches() {
     let r = run_batch(510, 300, 0.9, false, false);
     report("general, 90 % outliers, 300 cases", &r);
 }
+
+#[test]
+fn input_threshold_overrides_the_solver_option() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let gt = random_pose(&mut rng);
+    // Coarse matches: 6 px noise, 30 % outliers.
+    let scene = make_scene(&mut rng, pinhole(), gt, 300, 0.3, 6.0, false);
+    let input = PnpInput::new(&scene.camera, &scene.pixels, &scene.points_world);
+    let solver = LoRansacPnp::default();
+    let tight = solver
+        .solve(&input, &mut ChaCha8Rng::seed_from_u64(0))
+        .map(|r| r.stats.num_inliers)
+        .unwrap_or(0);
+    let loose = solver
+        .solve(
+            &input.with_max_error_px(20.0),
+            &mut ChaCha8Rng::seed_from_u64(0),
+        )
+        .expect("a loose threshold finds the pose");
+    let true_inliers = scene.is_inlier.iter().filter(|&&b| b).count();
+    // 3 px keeps a minority of 6 px-noise inliers; 20 px (> 3 sigma) keeps nearly all of them.
+    assert!(tight < true_inliers / 2, "tight {tight} of {true_inliers}");
+    assert!(
+        loose.stats.num_inliers >= true_inliers * 95 / 100,
+        "loose {} of {true_inliers}",
+        loose.stats.num_inliers
+    );
+    let (t, r) = pose_errors(&loose.cam_from_world, &gt);
+    assert!(t < 1.0 && r < 1.0, "{t} m {r} deg");
+    // An invalid override is a typed error, like the option itself.
+    assert!(matches!(
+        solver.solve(&input.with_max_error_px(-1.0), &mut rng),
+        Err(PnpError::InvalidOption { .. })
+    ));
+}
