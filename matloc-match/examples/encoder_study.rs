@@ -49,6 +49,7 @@ struct View {
 struct Score {
     matches: f64,
     correct: f64,
+    correct8: f64,
     inliers: f64,
     localized: usize,
     tries: usize,
@@ -61,13 +62,21 @@ fn score(
     matcher: &MnnMatcher,
     starts: bool,
 ) -> Score {
-    let solver = LoRansacPnp::default();
+    let mut options = matloc_pnp::PnpOptions::default();
+    if let Some(px) = std::env::var("ENC_PNP_PX")
+        .ok()
+        .and_then(|v| v.parse().ok())
+    {
+        options.ransac.max_error_px = px;
+    }
+    let solver = LoRansacPnp::new(options);
     let mut s = Score::default();
     for (v, q) in views.iter().zip(queries) {
         let query = QueryFeatures::new(q.clone(), ENCODER_STRIDE as f64);
         let tm = timed_match(matcher, &query, &v.truth, Some(dims)).expect("match");
         s.matches += tm.matches.len() as f64;
         s.correct += correct_matches(&tm.matches, &v.camera, &v.pose, 2.0) as f64;
+        s.correct8 += correct_matches(&tm.matches, &v.camera, &v.pose, 8.0) as f64;
         if !starts {
             continue;
         }
@@ -95,6 +104,7 @@ fn score(
     let n = views.len().max(1) as f64;
     s.matches /= n;
     s.correct /= n;
+    s.correct8 /= n;
     s.inliers /= n;
     s
 }
@@ -284,21 +294,31 @@ fn main() {
     });
     let t1 = Instant::now();
     let mut last = None;
-    let enc = train_encoder(&samples, all.clone(), stats, &cfg, &mut |p| {
-        if p.step % 100 == 0 || p.step == p.steps {
-            eprintln!(
-                "  step {}/{} loss {:.3} (mse {:.3}, nce {:.3}) {:.0} s",
-                p.step,
-                p.steps,
-                p.loss,
-                p.mse,
-                p.nce,
-                t1.elapsed().as_secs_f64()
-            );
-        }
-        last = Some(*p);
-    })
-    .expect("train");
+    let loaded = std::env::var("ENC_LOAD")
+        .ok()
+        .map(|p| QueryEncoder::load(std::path::Path::new(&p)).expect("encoder file"));
+    let enc = if let Some(e) = loaded {
+        e
+    } else {
+        train_encoder(&samples, all.clone(), stats, &cfg, &mut |p| {
+            if p.step % 100 == 0 || p.step == p.steps {
+                eprintln!(
+                    "  step {}/{} loss {:.3} (mse {:.3}, nce {:.3}) {:.0} s",
+                    p.step,
+                    p.steps,
+                    p.loss,
+                    p.mse,
+                    p.nce,
+                    t1.elapsed().as_secs_f64()
+                );
+            }
+            last = Some(*p);
+        })
+        .expect("train")
+    };
+    if let Ok(p) = std::env::var("ENC_SAVE") {
+        enc.save(std::path::Path::new(&p)).expect("save encoder");
+    }
     let train_s = t1.elapsed().as_secs_f64();
     let encode = |views: &[View], e: &QueryEncoder| -> Vec<FeatureMap> {
         views
@@ -309,10 +329,63 @@ fn main() {
     let q_fit = encode(&fit, &enc);
     let q_test = encode(&test, &enc);
     let o_fit: Vec<FeatureMap> = fit.iter().map(|v| v.oracle.clone()).collect();
+    // Noise-weighted matching: standardise each dim by the encoder's residual RMS on the fit
+    // views instead of the feature spread (a per-dim Mahalanobis weight under Gaussian noise).
+    let matcher_w = {
+        let mut sq = vec![0.0f64; 47];
+        let mut n = 0usize;
+        for (v, q) in fit.iter().zip(&q_fit) {
+            let w = v.oracle.width();
+            for i in 0..w * v.oracle.height() {
+                if !v.truth_valid(i) {
+                    continue;
+                }
+                let (o, e) = (v.oracle.pixel(i % w, i / w), q.pixel(i % w, i / w));
+                for d in 0..47 {
+                    let r = (e[d] - o[d]) as f64;
+                    sq[d] += r * r;
+                }
+                n += 1;
+            }
+        }
+        let full = enc.stats().clone();
+        let std: Vec<f32> = sq
+            .iter()
+            .map(|s| ((s / n.max(1) as f64).sqrt() as f32).max(1e-6))
+            .collect();
+        eprintln!(
+            "residual RMS / feature std per dim: {:?}",
+            std.iter()
+                .zip(&full.std)
+                .map(|(r, f)| format!("{:.2}", r / f))
+                .collect::<Vec<_>>()
+        );
+        MnnMatcher::new(MnnConfig {
+            stats: Some(FeatureStats {
+                mean: full.mean.clone(),
+                std,
+            }),
+            ..Default::default()
+        })
+    };
     let o_test: Vec<FeatureMap> = test.iter().map(|v| v.oracle.clone()).collect();
-    let sel = greedy(&fit, &q_fit, &matcher, 5);
-    let sel_oracle = greedy(&fit, &o_fit, &matcher, 5);
-    let p = last.expect("steps");
+    let n_s: usize = std::env::var("ENC_NS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(5);
+    let sel = greedy(&fit, &q_fit, &matcher, n_s);
+    let sel_oracle = if std::env::var("ENC_SKIP_ORACLE").is_ok() {
+        vec![8, 17, 0, 1, 2]
+    } else {
+        greedy(&fit, &o_fit, &matcher, 5)
+    };
+    let p = last.unwrap_or(matloc_match::encoder::EncoderProgress {
+        step: 0,
+        steps: 0,
+        loss: f32::NAN,
+        mse: f32::NAN,
+        nce: f32::NAN,
+    });
     println!(
         "config {}",
         serde_json::to_string(&cfg).expect("config JSON")
@@ -322,14 +395,15 @@ fn main() {
         p.steps, p.loss, p.mse, p.nce
     );
     println!(
-        "| query | dims | views | matches (true pose) | correct <= 2 px | precision | PnP inliers | localized <= 1 m / 5 deg from 3 m / 5 deg starts | corr (min / median) |"
+        "| query | dims | views | matches (true pose) | correct <= 2 px | precision | <= 8 px | PnP inliers | localized <= 1 m / 5 deg from 3 m / 5 deg starts | corr (min / median) |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
-    for (name, dims_name, dims) in [
-        ("encoder", "greedy-5", &sel),
-        ("encoder", "all-47", &all),
-        ("perfect", "greedy-5", &sel_oracle),
-        ("perfect", "encoder's greedy-5", &sel),
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for (name, dims_name, dims, m) in [
+        ("encoder", "greedy-5", &sel, &matcher),
+        ("encoder", "all-47", &all, &matcher),
+        ("encoder", "all-47 noise-weighted", &all, &matcher_w),
+        ("perfect", "greedy-5", &sel_oracle, &matcher),
+        ("perfect", "encoder's greedy-5", &sel, &matcher),
     ] {
         for (vname, views, q) in [
             (
@@ -343,14 +417,15 @@ fn main() {
                 if name == "encoder" { &q_test } else { &o_test },
             ),
         ] {
-            let s = score(views, q, dims, &matcher, true);
+            let s = score(views, q, dims, m, true);
             let mut c = correlations(views, q, dims);
             c.sort_by(f64::total_cmp);
             println!(
-                "| {name} | {dims_name} | {vname} | {:.0} | {:.0} | {:.3} | {:.1} | {}/{} | {:.2} / {:.2} |",
+                "| {name} | {dims_name} | {vname} | {:.0} | {:.0} | {:.3} | {:.3} | {:.1} | {}/{} | {:.2} / {:.2} |",
                 s.matches,
                 s.correct,
                 s.correct / s.matches.max(1.0),
+                s.correct8 / s.matches.max(1.0),
                 s.inliers,
                 s.localized,
                 s.tries,

@@ -117,6 +117,18 @@ pub fn solve_pose(
     solver: &dyn PoseSolver,
     rng: &mut dyn RngCore,
 ) -> Result<PnpResult, PnpError> {
+    solve_pose_within(matches, camera, solver, None, rng)
+}
+
+/// [`solve_pose`] with an inlier threshold (pixels) for these matches instead of the
+/// solver's own (see [`matloc_pnp::PnpInput::max_error_px`]).
+pub fn solve_pose_within(
+    matches: &[Match2d3d],
+    camera: &Camera,
+    solver: &dyn PoseSolver,
+    max_error_px: Option<f64>,
+    rng: &mut dyn RngCore,
+) -> Result<PnpResult, PnpError> {
     let pixels: Vec<Point2<f64>> = matches
         .iter()
         .map(|m| Point2::new(m.query_px[0], m.query_px[1]))
@@ -126,10 +138,9 @@ pub fn solve_pose(
         .map(|m| Point3::from(m.point_world))
         .collect();
     let scores: Vec<f64> = matches.iter().map(|m| m.similarity as f64).collect();
-    solver.solve(
-        &PnpInput::new(camera, &pixels, &points).with_scores(&scores),
-        rng,
-    )
+    let mut input = PnpInput::new(camera, &pixels, &points).with_scores(&scores);
+    input.max_error_px = max_error_px;
+    solver.solve(&input, rng)
 }
 
 /// Settings of [`localize`].
