@@ -26,7 +26,7 @@ pub struct DemoArgs {
     #[arg(long)]
     config: Option<PathBuf>,
     /// Test queries for the iNeRF baselines (they take tens of seconds each on the CPU).
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 4)]
     inerf_queries: usize,
 }
 
@@ -34,9 +34,9 @@ pub struct DemoArgs {
 /// about 20 minutes on 2 cores.
 pub fn demo_config() -> MapConfig {
     let mut c = MapConfig::default();
-    c.nerf.steps = 1000;
-    c.nerf.checkpoint_every = 250;
-    c.encoder.train.steps = 300;
+    // 600 steps per block: the two blocks of `small` take ~9 of the 20 minutes.
+    c.nerf.steps = 600;
+    c.nerf.checkpoint_every = 200;
     c.place.train.epochs = 30;
     c
 }

@@ -48,11 +48,23 @@ fn main() {
     println!(
         "query | coarse err (m, deg) | est err (m, deg) | matches inliers conf | from truth: est err | matches inliers conf"
     );
+    // Within 1 m / 5 deg: (place start, accepted), (true-pose start), (oracle from place).
+    let (mut ok_place, mut ok_accepted, mut ok_truth, mut ok_oracle, mut n) = (0, 0, 0, 0, 0);
+    let mut accept = 0.0;
+    let good = |e: Option<(f64, f64)>| e.is_some_and(|(t, r)| t <= 1.0 && r <= 5.0);
     for f in dataset.split(Split::Test) {
+        n += 1;
         let (image, camera) = matloc_data::images::load_frame_image(&dataset, f, 1).expect("image");
         let hyps = map.place.predict(&image, &camera, 1).expect("place");
         let h = hyps[0].clone();
         let mut options = map.options();
+        // DIAG_CELLS=first,refine sets the PnP thresholds (query cells).
+        if let Ok(v) = std::env::var("DIAG_CELLS") {
+            let c: Vec<f64> = v.split(',').map(|x| x.parse().expect("cells")).collect();
+            options.first_pass_threshold_cells = c[0];
+            options.refine_threshold_cells = *c.get(1).unwrap_or(&c[0]);
+        }
+        accept = options.confidence.accept_threshold;
         options.confidence.accept_threshold = 0.0;
         options.top_k = 1;
         let run = |h: PlaceHypothesis| {
@@ -186,6 +198,10 @@ fn main() {
             "  encoder corr per selected dim {:?}",
             corr.iter().map(|c| format!("{c:.2}")).collect::<Vec<_>>()
         );
+        ok_place += usize::from(good(e1));
+        ok_accepted += usize::from(good(e1) && r1.confidence >= accept);
+        ok_truth += usize::from(good(e2));
+        ok_oracle += usize::from(good(oe));
         let fmt = |e: Option<(f64, f64)>| {
             e.map_or("-".to_string(), |e| format!("{:.2} m {:.2}°", e.0, e.1))
         };
@@ -205,4 +221,7 @@ fn main() {
             r2.failure.unwrap_or_default()
         );
     }
+    println!(
+        "within 1 m / 5 deg of {n}: from the place hypothesis {ok_place} ({ok_accepted} with confidence >= {accept:.2}); from the true pose {ok_truth}; perfect encoder from the place hypothesis {ok_oracle}"
+    );
 }

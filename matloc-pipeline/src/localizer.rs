@@ -17,7 +17,7 @@ use std::time::Instant;
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_core::{Camera, Image, Pose};
 use matloc_match::gt::ViewRenderer;
-use matloc_match::localize::{LocalizeError, render_map_points, solve_pose};
+use matloc_match::localize::{LocalizeError, render_map_points, solve_pose_within};
 use matloc_match::{Matcher, QueryFeatures};
 use matloc_place::PlacePredictor;
 use matloc_pnp::PoseSolver;
@@ -84,6 +84,14 @@ pub struct LocalizeOptions {
     /// window did not raise the inlier count of encoder features, which are locally smooth).
     /// Used by maps loaded through [`crate::stages::LoadedBlocks`].
     pub window_fraction: f64,
+    /// PnP inlier threshold of a hypothesis' first pass, in query cells (the encoder's stride,
+    /// so it scales with the query resolution). Learned-encoder matches are often a cell or
+    /// two off (tiny preset, encoder all 47 dims from the true pose: 17 % of MNN matches within
+    /// 2 px, 44 % within 8 px = 2 cells); one step from 3 m / 5° starts reaches 1 m / 5° in
+    /// 3/30 test views at 0.75 cells (3 px), 9/30 at 1.5–2.5 cells.
+    pub first_pass_threshold_cells: f64,
+    /// The same for the refinement passes (rendered at the previous estimate).
+    pub refine_threshold_cells: f64,
 }
 
 impl Default for LocalizeOptions {
@@ -99,6 +107,8 @@ impl Default for LocalizeOptions {
             confidence: ConfidenceModel::default(),
             seed: 0,
             window_fraction: 0.0,
+            first_pass_threshold_cells: 3.0,
+            refine_threshold_cells: 3.0,
         }
     }
 }
@@ -199,6 +209,7 @@ impl Localizer<'_> {
         query: &QueryFeatures,
         camera: &Camera,
         cam_from_world: &Pose,
+        threshold_cells: f64,
         rng: &mut ChaCha8Rng,
         clock: &mut StageClock,
     ) -> Result<Pass, PipelineError> {
@@ -221,7 +232,8 @@ impl Localizer<'_> {
         };
         clock.add("match", t);
         let t = Instant::now();
-        let solved = solve_pose(&matches, camera, self.solver, rng);
+        let threshold_px = threshold_cells * block.encoder.stride() as f64;
+        let solved = solve_pose_within(&matches, camera, self.solver, Some(threshold_px), rng);
         clock.add("pnp", t);
         Ok(match solved {
             Ok(r) => Pass {
@@ -313,7 +325,20 @@ impl Localizer<'_> {
             let mut pose = hyp.cam_from_world;
             let mut confidence = 0.0;
             for pass_index in 0..self.options.max_passes.max(1) {
-                let pass = match self.pass(block, &query, camera, &pose, &mut rng, &mut clock) {
+                let threshold_cells = if pass_index == 0 {
+                    self.options.first_pass_threshold_cells
+                } else {
+                    self.options.refine_threshold_cells
+                };
+                let pass = match self.pass(
+                    block,
+                    &query,
+                    camera,
+                    &pose,
+                    threshold_cells,
+                    &mut rng,
+                    &mut clock,
+                ) {
                     Ok(p) => p,
                     Err(PipelineError::RenderFailure(e)) => {
                         report.failure = Some(e);
