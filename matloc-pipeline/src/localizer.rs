@@ -60,7 +60,9 @@ pub struct LocalizerBlock<'a> {
 pub struct LocalizeOptions {
     /// Place hypotheses to try, best first.
     pub top_k: usize,
-    /// Render/match passes per hypothesis (1 = the paper's single pass).
+    /// Render/match passes per hypothesis (1 = the paper's single pass). Default 2: on the
+    /// `small` demo map a third pass changed neither accuracy (accepted median 1.03 m with 2
+    /// passes, 1.08 m with 3) nor refusals and cost 0.04 s per query (0.231 → 0.273 s, idle).
     pub max_passes: usize,
     /// Stop refining when the pose moves less than this (metres) ...
     pub converge_translation_m: f64,
@@ -98,7 +100,7 @@ impl Default for LocalizeOptions {
     fn default() -> Self {
         Self {
             top_k: 3,
-            max_passes: 3,
+            max_passes: 2,
             converge_translation_m: 0.02,
             converge_rotation_deg: 0.05,
             min_accumulation: 0.5,
