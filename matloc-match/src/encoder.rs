@@ -653,17 +653,14 @@ pub fn train_encoder(
                         .reshape([d, cells])
                         .swap_dims(0, 1)
                         .select(0, idx_t.clone())
+                        .reshape([1, k, d])
                 };
-                let norm = |t: Tensor<2>| {
-                    let n = t.clone().square().sum_dim(1).sqrt().add_scalar(1e-6);
-                    t / n
-                };
-                let q = norm(flat(&pred));
-                let tt = norm(flat(&target));
-                let logits = q.matmul(tt.transpose()).div_scalar(cfg.temperature);
-                let lsm = log_softmax(logits, 1);
-                let eye = Tensor::<2>::eye(k, &device);
-                nce_terms.push((lsm * eye).sum().div_scalar(-(k as f32)));
+                nce_terms.push(info_nce(
+                    flat(&pred),
+                    flat(&target),
+                    cfg.temperature,
+                    &device,
+                ));
             }
             if !nce_terms.is_empty() {
                 let n = nce_terms.len() as f32;
@@ -676,7 +673,7 @@ pub fn train_encoder(
         let loss_v = loss.clone().into_scalar_f32();
         let grads = GradientsParams::from_grads(loss.backward(), &net);
         let t = step as f64 / cfg.steps.max(1) as f64;
-        let lr = cfg.learning_rate * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()));
+        let lr = cosine_lr(cfg.learning_rate, t);
         net = optim.step(lr, net, grads);
         progress(&EncoderProgress {
             step: step + 1,
@@ -708,6 +705,30 @@ pub fn train_encoder(
         stats,
         net: net.valid(),
     })
+}
+
+/// Learning rate at fraction `t` of a phase: cosine decay from `base` to 5 % of it.
+fn cosine_lr(base: f64, t: f64) -> f64 {
+    base * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()))
+}
+
+/// InfoNCE of `[G, K, D]` predictions against targets: within each of the `G` groups, cell
+/// `i`'s prediction must pick target `i` among the group's `K` (cosine similarity over
+/// `temperature`); mean over all `G · K` cells, as a `[1]` tensor.
+fn info_nce(pred: Tensor<3>, target: Tensor<3>, temperature: f32, device: &Device) -> Tensor<1> {
+    let [g, k, _] = pred.dims();
+    let norm = |t: Tensor<3>| {
+        let n = t.clone().square().sum_dim(2).sqrt().add_scalar(1e-6);
+        t / n
+    };
+    let logits = norm(pred)
+        .matmul(norm(target).swap_dims(1, 2))
+        .div_scalar(temperature);
+    let eye = Tensor::<2>::eye(k, device).reshape([1, k, k]);
+    (log_softmax(logits, 2) * eye)
+        .sum()
+        .div_scalar(-((g * k) as f32))
+        .reshape([1])
 }
 
 /// Per-image buffer of the second phase: row-major trunk features and standardised targets of
@@ -806,18 +827,7 @@ fn train_head(
         let mut loss = mse.clone().mul_scalar(cfg.w_reg);
         let mut nce_v = 0.0;
         if cfg.w_nce > 0.0 {
-            let norm = |t: Tensor<3>| {
-                let n = t.clone().square().sum_dim(2).sqrt().add_scalar(1e-6);
-                t / n
-            };
-            let logits = norm(pred)
-                .matmul(norm(y).swap_dims(1, 2))
-                .div_scalar(cfg.temperature);
-            let eye = Tensor::<2>::eye(k, &device).reshape([1, k, k]);
-            let nce = (log_softmax(logits, 2) * eye)
-                .sum()
-                .div_scalar(-((g * k) as f32))
-                .reshape([1]);
+            let nce = info_nce(pred, y, cfg.temperature, &device);
             nce_v = nce.clone().into_scalar_f32();
             loss = loss + nce.mul_scalar(cfg.w_nce);
         }
@@ -825,7 +835,7 @@ fn train_head(
         let loss_v = loss.clone().into_scalar_f32();
         let grads = GradientsParams::from_grads(loss.backward(), &head);
         let t = step as f64 / hc.steps as f64;
-        let lr = hc.learning_rate * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()));
+        let lr = cosine_lr(hc.learning_rate, t);
         head = optim.step(lr, head, grads);
         progress(&EncoderProgress {
             step: cfg.steps + step + 1,

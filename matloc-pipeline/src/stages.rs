@@ -205,6 +205,46 @@ pub struct SelectionRecord {
     pub pairs: usize,
 }
 
+/// Greedy MNN-F1 selection of `n_s` dims for block `b`, on its GT pairs with the block's
+/// encoder features as the query side.
+fn greedy_selection(
+    map: &MapDir,
+    dataset: &Dataset,
+    b: usize,
+    n_s: usize,
+) -> Result<SelectionRecord, PipelineError> {
+    let gt = GtPairSet::from_bytes(
+        &map.read_file(&pairs_file(b))?,
+        &map.path_of(&pairs_file(b))?,
+    )
+    .map_err(|e| PipelineError::Config(format!("pairs of block {b}: {e}")))?;
+    let enc = load_encoder(map, b)?;
+    let mut maps = Vec::new();
+    for r in &gt.provenance.renders {
+        if maps.iter().any(|(i, _)| *i == r.view.index) {
+            continue;
+        }
+        let (image, _) = load_image(dataset, r.view.index)?;
+        let m = enc
+            .encode(&image)
+            .map_err(|e| PipelineError::Encoder(e.to_string()))?;
+        maps.push((r.view.index, m));
+    }
+    let qf = pair_query_features(&gt, &maps)?;
+    let pairs = PairSet::from_gt(&gt, Some(qf))
+        .map_err(|e| PipelineError::Config(format!("selection of block {b}: {e}")))?;
+    let mut rng = ChaCha8Rng::seed_from_u64(b as u64);
+    let sel = MatchingSelector::default()
+        .select(&pairs, n_s, &mut rng)
+        .map_err(|e| PipelineError::Config(format!("selection of block {b}: {e}")))?;
+    Ok(SelectionRecord {
+        dims: sel.dims,
+        selector: "greedy MNN-F1".into(),
+        objective: sel.report.objective,
+        pairs: gt.len(),
+    })
+}
+
 /// A training view of a block, with its frame index in the dataset.
 fn views_of_block(
     dataset: &Dataset,
@@ -424,53 +464,19 @@ pub(crate) fn run_after_nerf(
 
         // Selection.
         stage(map, &format!("select/{b}"), 0, progress, &mut |map, _| {
-            if config.select.dims >= all_dims.len() {
-                let record = SelectionRecord {
+            let record = if config.select.dims >= all_dims.len() {
+                SelectionRecord {
                     dims: all_dims.clone(),
                     selector: "all dims".into(),
                     objective: 0.0,
                     pairs: 0,
-                };
-                map.write_json(&selection_file(b), &record)?;
-                if let Some(e) = map.manifest_mut().blocks.get_mut(b) {
-                    e.selected_dims = all_dims.clone();
                 }
-                map.save()?;
-                return Ok(());
-            }
-            let gt = GtPairSet::from_bytes(
-                &map.read_file(&pairs_file(b))?,
-                &map.path_of(&pairs_file(b))?,
-            )
-            .map_err(|e| PipelineError::Config(format!("pairs of block {b}: {e}")))?;
-            let enc = load_encoder(map, b)?;
-            let mut maps = Vec::new();
-            for r in &gt.provenance.renders {
-                if maps.iter().any(|(i, _)| *i == r.view.index) {
-                    continue;
-                }
-                let (image, _) = load_image(dataset, r.view.index)?;
-                let m = enc
-                    .encode(&image)
-                    .map_err(|e| PipelineError::Encoder(e.to_string()))?;
-                maps.push((r.view.index, m));
-            }
-            let qf = pair_query_features(&gt, &maps)?;
-            let pairs = PairSet::from_gt(&gt, Some(qf))
-                .map_err(|e| PipelineError::Config(format!("selection of block {b}: {e}")))?;
-            let mut rng = ChaCha8Rng::seed_from_u64(b as u64);
-            let sel = MatchingSelector::default()
-                .select(&pairs, config.select.dims, &mut rng)
-                .map_err(|e| PipelineError::Config(format!("selection of block {b}: {e}")))?;
-            let record = SelectionRecord {
-                dims: sel.dims.clone(),
-                selector: "greedy MNN-F1".into(),
-                objective: sel.report.objective,
-                pairs: gt.len(),
+            } else {
+                greedy_selection(map, dataset, b, config.select.dims)?
             };
             map.write_json(&selection_file(b), &record)?;
             if let Some(e) = map.manifest_mut().blocks.get_mut(b) {
-                e.selected_dims = sel.dims;
+                e.selected_dims = record.dims;
             }
             map.save()?;
             Ok(())
