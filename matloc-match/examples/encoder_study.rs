@@ -369,6 +369,14 @@ fn main() {
         })
     };
     let o_test: Vec<FeatureMap> = test.iter().map(|v| v.oracle.clone()).collect();
+    if std::env::var("ENC_ERRORS").is_ok() {
+        let rerender = |cam: &matloc_core::Camera, p: &Pose| {
+            render_map_points(&renderer, cam, p, ENCODER_STRIDE, &all, 0.5).expect("render")
+        };
+        error_structure(&test, &q_test, &all, &matcher, &rerender);
+        error_structure(&test, &o_test, &all, &matcher, &rerender);
+        return;
+    }
     let n_s: usize = std::env::var("ENC_NS")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -434,4 +442,179 @@ fn main() {
             );
         }
     }
+}
+
+/// Per view: how coherent the match errors from the true pose are (share of their variance an
+/// affine function of the pixel explains), and the pose PnP makes of them.
+fn error_structure(
+    views: &[View],
+    queries: &[FeatureMap],
+    dims: &[usize],
+    matcher: &MnnMatcher,
+    rerender: &dyn Fn(&matloc_core::Camera, &Pose) -> RenderedPoints,
+) {
+    let rounds: usize = std::env::var("FM_ROUNDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    let px: f64 = std::env::var("ENC_PNP_PX")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(12.0);
+    let mut options = matloc_pnp::PnpOptions::default();
+    options.ransac.max_error_px = px;
+    let solver = LoRansacPnp::new(options);
+    println!(
+        "| view | matches | median err px | mean err vec px | affine-explained var | PnP t err m | r err deg | inliers | t err horiz / vert m | depth m | FM t / r | starts: PnP t err | starts: FM t err |"
+    );
+    let mut fm_cfg = matloc_match::featuremetric::FeatureMetricConfig::default();
+    if let Ok(l) = std::env::var("FM_LEVELS") {
+        fm_cfg.levels = l
+            .split(',')
+            .map(|v| v.parse().expect("FM_LEVELS"))
+            .collect();
+    }
+    fm_cfg.robust_scale = std::env::var("FM_SCALE")
+        .ok()
+        .map(|v| v.parse().expect("FM_SCALE"));
+    let fm_dims: Vec<usize> = match std::env::var("FM_DIMS") {
+        Ok(v) if v == "coarse" => (0..18).chain(32..47).collect(),
+        _ => dims.to_vec(),
+    };
+    let dims_fm = &fm_dims[..];
+    let stats = matcher.config.stats.as_ref();
+    let fm = |q: &QueryFeatures,
+              map: &RenderedPoints,
+              cam: &matloc_core::Camera,
+              p: &matloc_core::Pose| {
+        let t = Instant::now();
+        let out = matloc_match::featuremetric::refine_pose(
+            q,
+            map,
+            cam,
+            p,
+            Some(dims_fm),
+            stats,
+            true,
+            &fm_cfg,
+        );
+        if std::env::var("FM_TIME").is_ok() {
+            eprintln!(
+                "fm {:.1} ms, {:?} steps",
+                t.elapsed().as_secs_f64() * 1e3,
+                out.as_ref().map(|o| o.steps)
+            );
+        }
+        out.map(|o| o.cam_from_world).unwrap_or(*p)
+    };
+    let (mut pnp_all, mut fm_all) = (Vec::new(), Vec::new());
+    for (k, (v, q)) in views.iter().zip(queries).enumerate() {
+        let query = QueryFeatures::new(q.clone(), ENCODER_STRIDE as f64);
+        let tm = timed_match(matcher, &query, &v.truth, Some(dims)).expect("match");
+        let mut rows = Vec::new();
+        let mut depths = Vec::new();
+        for m in &tm.matches {
+            let x = nalgebra::Point3::from(m.point_world);
+            if let Some(u) = v.camera.project_world(&v.pose, &x) {
+                let e = [u.x - m.query_px[0], u.y - m.query_px[1]];
+                if e[0].hypot(e[1]) < 40.0 {
+                    rows.push((m.query_px, e));
+                }
+                depths.push((v.pose.transform_point(&x)).z);
+            }
+        }
+        let n = rows.len().max(1) as f64;
+        let mean = [
+            rows.iter().map(|r| r.1[0]).sum::<f64>() / n,
+            rows.iter().map(|r| r.1[1]).sum::<f64>() / n,
+        ];
+        let mut mags: Vec<f64> = rows.iter().map(|r| r.1[0].hypot(r.1[1])).collect();
+        mags.sort_by(f64::total_cmp);
+        // Least squares e = A [u v 1] per component.
+        let mut explained = 0.0;
+        let mut total = 0.0;
+        for c in 0..2 {
+            let a = nalgebra::DMatrix::from_fn(rows.len(), 3, |i, j| match j {
+                0 => rows[i].0[0],
+                1 => rows[i].0[1],
+                _ => 1.0,
+            });
+            let b = nalgebra::DVector::from_fn(rows.len(), |i, _| rows[i].1[c]);
+            if let Ok(sol) = a.clone().svd(true, true).solve(&b, 1e-9) {
+                let r = &b - &a * sol;
+                total += b.iter().map(|x| x * x).sum::<f64>();
+                explained +=
+                    b.iter().map(|x| x * x).sum::<f64>() - r.iter().map(|x| x * x).sum::<f64>();
+            }
+        }
+        depths.sort_by(f64::total_cmp);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let pose = solve_pose(&tm.matches, &v.camera, &solver, &mut rng);
+        match pose {
+            Ok(r) => {
+                let c_est = r.cam_from_world.inverse().translation.vector;
+                let c_true = v.pose.inverse().translation.vector;
+                let d = c_est - c_true;
+                let refined = fm(&query, &v.truth, &v.camera, &r.cam_from_world);
+                let mut st = (String::new(), String::new());
+                for (_, map) in &v.starts {
+                    let tm = timed_match(matcher, &query, map, Some(dims)).expect("match");
+                    let mut rng = ChaCha8Rng::seed_from_u64(7);
+                    if let Ok(r) = solve_pose(&tm.matches, &v.camera, &solver, &mut rng) {
+                        let e0 = translation_error_m(&r.cam_from_world, &v.pose);
+                        let mut p1 = fm(&query, map, &v.camera, &r.cam_from_world);
+                        for _ in 1..rounds {
+                            let m2 = rerender(&v.camera, &p1);
+                            if std::env::var("FM_PNP2").is_ok() {
+                                let tm =
+                                    timed_match(matcher, &query, &m2, Some(dims)).expect("match");
+                                let mut rng = ChaCha8Rng::seed_from_u64(7);
+                                if let Ok(r) = solve_pose(&tm.matches, &v.camera, &solver, &mut rng)
+                                {
+                                    p1 = r.cam_from_world;
+                                }
+                            }
+                            p1 = fm(&query, &m2, &v.camera, &p1);
+                        }
+                        let e1 = translation_error_m(&p1, &v.pose);
+                        st.0 += &format!("{e0:.2} ");
+                        st.1 += &format!("{e1:.2} ");
+                        pnp_all.push(e0);
+                        fm_all.push(e1);
+                    }
+                }
+                println!(
+                    "| {k} | {} | {:.1} | ({:.1}, {:.1}) | {:.2} | {:.2} | {:.2} | {} | {:.2} / {:.2} | {:.0} | {:.2} / {:.2} | {} | {} |",
+                    rows.len(),
+                    mags[mags.len() / 2],
+                    mean[0],
+                    mean[1],
+                    explained / total.max(1e-12),
+                    translation_error_m(&r.cam_from_world, &v.pose),
+                    rotation_error_deg(&r.cam_from_world, &v.pose),
+                    r.inliers.iter().filter(|&&b| b).count(),
+                    d.x.hypot(d.y),
+                    d.z.abs(),
+                    depths[depths.len() / 2],
+                    translation_error_m(&refined, &v.pose),
+                    rotation_error_deg(&refined, &v.pose),
+                    st.0,
+                    st.1,
+                );
+            }
+            Err(e) => println!("| {k} | {} | PnP failed: {e} |", rows.len()),
+        }
+    }
+    pnp_all.sort_by(f64::total_cmp);
+    fm_all.sort_by(f64::total_cmp);
+    let med = |v: &[f64]| v.get(v.len() / 2).copied().unwrap_or(f64::NAN);
+    let within = |v: &[f64]| v.iter().filter(|&&e| e <= 1.0).count();
+    println!(
+        "starts: PnP median {:.2} m ({} of {} within 1 m), + feature-metric median {:.2} m ({} within 1 m)",
+        med(&pnp_all),
+        within(&pnp_all),
+        pnp_all.len(),
+        med(&fm_all),
+        within(&fm_all)
+    );
 }

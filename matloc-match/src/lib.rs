@@ -18,10 +18,13 @@
 //! - [`encoder`] (feature `encoder`, on by default) is the burn CNN mapping RGB to the NeRF
 //!   feature domain at stride 4.
 //! - [`localize`] renders the map at a coarse pose, lifts it to 3D, matches and solves PnP.
+//! - [`featuremetric`] refines a pose against the dense query feature map (every rendered
+//!   point, not only the matches): what makes learned-encoder poses sub-metre.
 
 #[cfg(feature = "encoder")]
 pub mod encoder;
 pub mod error;
+pub mod featuremetric;
 pub mod gt;
 pub mod kernel;
 pub mod localize;

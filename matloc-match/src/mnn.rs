@@ -318,6 +318,15 @@ pub trait Matcher: Send + Sync {
         map: &RenderedPoints,
         selection: Option<&[usize]>,
     ) -> Result<Vec<Match2d3d>, MatchError>;
+
+    /// The space the matcher compares features in: per-dim statistics the features are
+    /// standardised with (indexed like the features it is given) and whether they are then
+    /// L2-normalised. Refinement stages that work on the same features (e.g.
+    /// [`crate::featuremetric`]) use it so that both agree on what "similar" means. Default:
+    /// raw features, L2-normalised.
+    fn feature_space(&self) -> (Option<&FeatureStats>, bool) {
+        (None, true)
+    }
 }
 
 /// Mutual-nearest-neighbour matcher on normalised features (see [`MnnConfig`]).
@@ -335,6 +344,10 @@ impl MnnMatcher {
 }
 
 impl Matcher for MnnMatcher {
+    fn feature_space(&self) -> (Option<&FeatureStats>, bool) {
+        (self.config.stats.as_ref(), self.config.l2_normalise)
+    }
+
     fn match_features(
         &self,
         query: &QueryFeatures,

@@ -2,8 +2,9 @@
 //! on the solver's evidence, fitted at map-build time on held-out queries with known poses.
 //!
 //! "Correct" is defined by the caller when labelling the calibration set (the pipeline uses
-//! within 1 m and 5°). Evidence features are the log inlier count, the inlier ratio and the
-//! log mean similarity gap of the matches — all cheap by-products of matching and PnP. Fitted
+//! within 5 m and 10°). Evidence features are the log inlier count, the inlier ratio, the log
+//! match count and the feature-metric alignment contrast — all by-products of matching, PnP and
+//! refinement. Fitted
 //! by Newton's method (IRLS) with a ridge term, so separable or one-class calibration sets still
 //! give finite weights.
 
@@ -18,15 +19,24 @@ pub struct Evidence {
     pub inlier_ratio: f64,
     /// Matches fed to PnP.
     pub matches: usize,
+    /// Feature-metric alignment contrast at the final pose (0 when not measured).
+    #[serde(default)]
+    pub alignment: f64,
 }
 
+/// Number of logistic features (bias included).
+const NF: usize = 5;
+
 impl Evidence {
-    fn features(&self) -> [f64; 4] {
+    fn features(&self) -> [f64; NF] {
         [
             1.0,
             (1.0 + self.inliers as f64).ln(),
             self.inlier_ratio.clamp(0.0, 1.0),
             (1.0 + self.matches as f64).ln(),
+            // Contrasts are ~0.1–0.2 for right poses and < 0.07 for wrong ones (small demo
+            // map): scaled to O(1) like the other features, so one ridge fits all.
+            10.0 * self.alignment,
         ]
     }
 }
@@ -50,6 +60,10 @@ pub enum CalibrationError {
 pub struct ConfidenceModel {
     /// Weights for (bias, ln(1+inliers), inlier ratio, ln(1+matches)).
     pub weights: [f64; 4],
+    /// Weight of 10 × the feature-metric alignment contrast ([`Evidence::alignment`]); 0 in
+    /// models calibrated before it existed.
+    #[serde(default)]
+    pub alignment_weight: f64,
     /// Queries with a confidence below this are refused ("not localized").
     pub accept_threshold: f64,
 }
@@ -59,6 +73,7 @@ impl Default for ConfidenceModel {
     fn default() -> Self {
         Self {
             weights: [-6.0, 2.0, 2.0, 0.0],
+            alignment_weight: 0.0,
             accept_threshold: 0.5,
         }
     }
@@ -72,7 +87,13 @@ impl ConfidenceModel {
     /// Probability that the pose is correct.
     pub fn confidence(&self, e: &Evidence) -> f64 {
         let x = e.features();
-        sigmoid((0..4).map(|i| self.weights[i] * x[i]).sum())
+        let w = self.all_weights();
+        sigmoid((0..NF).map(|i| w[i] * x[i]).sum())
+    }
+
+    fn all_weights(&self) -> [f64; NF] {
+        let w = &self.weights;
+        [w[0], w[1], w[2], w[3], self.alignment_weight]
     }
 
     /// Whether to accept the pose.
@@ -88,7 +109,7 @@ impl ConfidenceModel {
         if samples.is_empty() {
             return Err(CalibrationError::Empty);
         }
-        let xs: Vec<[f64; 4]> = samples.iter().map(|(e, _)| e.features()).collect();
+        let xs: Vec<[f64; NF]> = samples.iter().map(|(e, _)| e.features()).collect();
         for (i, x) in xs.iter().enumerate() {
             if x.iter().any(|v| !v.is_finite()) {
                 return Err(CalibrationError::NonFinite { index: i });
@@ -99,29 +120,29 @@ impl ConfidenceModel {
         // weights to infinity. A weak prior on the bias keeps one-class sets finite.
         let ridge = 1.0;
         let bias_ridge = 1e-3;
-        let mut w = [0.0f64; 4];
+        let mut w = [0.0f64; NF];
         for _ in 0..50 {
-            let mut g = [0.0f64; 4];
-            let mut h = [[0.0f64; 4]; 4];
+            let mut g = [0.0f64; NF];
+            let mut h = [[0.0f64; NF]; NF];
             for (x, (_, label)) in xs.iter().zip(samples) {
-                let p = sigmoid((0..4).map(|i| w[i] * x[i]).sum());
+                let p = sigmoid((0..NF).map(|i| w[i] * x[i]).sum());
                 let y = if *label { 1.0 } else { 0.0 };
                 let s = (p * (1.0 - p)).max(1e-9);
-                for i in 0..4 {
+                for i in 0..NF {
                     g[i] += (p - y) * x[i];
-                    for j in 0..4 {
+                    for j in 0..NF {
                         h[i][j] += s * x[i] * x[j];
                     }
                 }
             }
-            for i in 0..4 {
+            for i in 0..NF {
                 let r = if i == 0 { bias_ridge } else { ridge };
                 g[i] += r * w[i];
                 h[i][i] += r;
             }
-            let Some(step) = solve4(h, g) else { break };
+            let Some(step) = solve(h, g) else { break };
             let mut max_step = 0.0f64;
-            for i in 0..4 {
+            for i in 0..NF {
                 w[i] -= step[i];
                 max_step = max_step.max(step[i].abs());
             }
@@ -130,32 +151,33 @@ impl ConfidenceModel {
             }
         }
         Ok(Self {
-            weights: w,
+            weights: [w[0], w[1], w[2], w[3]],
+            alignment_weight: w[4],
             accept_threshold,
         })
     }
 }
 
-/// Solves the 4×4 system `h x = g` by Gaussian elimination with partial pivoting.
-fn solve4(mut h: [[f64; 4]; 4], mut g: [f64; 4]) -> Option<[f64; 4]> {
-    for c in 0..4 {
-        let p = (c..4).max_by(|&a, &b| h[a][c].abs().total_cmp(&h[b][c].abs()))?;
+/// Solves the system `h x = g` by Gaussian elimination with partial pivoting.
+fn solve(mut h: [[f64; NF]; NF], mut g: [f64; NF]) -> Option<[f64; NF]> {
+    for c in 0..NF {
+        let p = (c..NF).max_by(|&a, &b| h[a][c].abs().total_cmp(&h[b][c].abs()))?;
         if h[p][c].abs() < 1e-15 {
             return None;
         }
         h.swap(c, p);
         g.swap(c, p);
-        for r in c + 1..4 {
+        for r in c + 1..NF {
             let f = h[r][c] / h[c][c];
-            for k in c..4 {
+            for k in c..NF {
                 h[r][k] -= f * h[c][k];
             }
             g[r] -= f * g[c];
         }
     }
-    let mut x = [0.0; 4];
-    for r in (0..4).rev() {
-        let s: f64 = (r + 1..4).map(|k| h[r][k] * x[k]).sum();
+    let mut x = [0.0; NF];
+    for r in (0..NF).rev() {
+        let s: f64 = (r + 1..NF).map(|k| h[r][k] * x[k]).sum();
         x[r] = (g[r] - s) / h[r][r];
     }
     Some(x)
@@ -170,7 +192,34 @@ mod tests {
             inliers,
             inlier_ratio: ratio,
             matches: (inliers as f64 / ratio.max(1e-3)) as usize,
+            alignment: 0.0,
         }
+    }
+
+    #[test]
+    fn learns_from_the_alignment_contrast() {
+        // Same inlier counts for right and wrong poses; only the contrast separates them.
+        let samples: Vec<_> = (0..100)
+            .map(|k| {
+                let ok = k % 2 == 0;
+                let e = Evidence {
+                    alignment: if ok { 0.12 + 0.001 * k as f64 } else { 0.02 },
+                    ..ev(20 + k % 7, 0.2)
+                };
+                (e, ok)
+            })
+            .collect();
+        let m = ConfidenceModel::fit(&samples, 0.5).unwrap();
+        assert!(m.alignment_weight > 0.0);
+        let with = |a: f64| Evidence {
+            alignment: a,
+            ..ev(22, 0.2)
+        };
+        assert!(m.accept(&with(0.15)) && !m.accept(&with(0.01)));
+        // Models stored before the alignment feature read with weight 0.
+        let old: ConfidenceModel =
+            serde_json::from_str(r#"{"weights":[-6,2,2,0],"accept_threshold":0.5}"#).unwrap();
+        assert_eq!(old.alignment_weight, 0.0);
     }
 
     #[test]

@@ -8,6 +8,9 @@
 //! - **iterative refinement**: after a confident pose, the map is re-rendered at the estimate
 //!   and matched again until the pose moves less than the convergence thresholds
 //!   (up to [`LocalizeOptions::max_passes`] passes in all);
+//! - **feature-metric refinement**: after each pass's PnP the pose is refined against every
+//!   rendered point's feature, not only the mutual matches
+//!   ([`LocalizeOptions::featuremetric`]);
 //! - **calibrated confidence and refusal**: every attempt is scored by the
 //!   [`ConfidenceModel`]; below its threshold the query is reported as not localized instead
 //!   of returning a wrong pose.
@@ -16,6 +19,7 @@ use std::time::Instant;
 
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_core::{Camera, Image, Pose};
+use matloc_match::featuremetric::{FeatureMetricConfig, refine_pose};
 use matloc_match::gt::ViewRenderer;
 use matloc_match::localize::{LocalizeError, render_map_points, solve_pose_within};
 use matloc_match::{Matcher, QueryFeatures};
@@ -94,6 +98,14 @@ pub struct LocalizeOptions {
     pub first_pass_threshold_cells: f64,
     /// The same for the refinement passes (rendered at the previous estimate).
     pub refine_threshold_cells: f64,
+    /// Feature-metric refinement after each pass's PnP (`None`: off): the pose is moved so
+    /// that the query feature map agrees with every rendered point's feature, not only the
+    /// mutual matches ([`matloc_match::featuremetric`]). The first pass starts it from the PnP
+    /// pose, later passes from the pose the map was rendered at (PnP still runs there, for the
+    /// confidence). Tiny preset, learned encoder, 30 starts at 3 m / 5°: PnP alone median
+    /// 1.58 m (8/30 within 1 m); + refinement 0.71 m (23/30); re-rendered at that pose and
+    /// refined again 0.48 m (22/30), vs 0.62 m when the second round starts from its PnP pose.
+    pub featuremetric: Option<FeatureMetricConfig>,
 }
 
 impl Default for LocalizeOptions {
@@ -111,6 +123,7 @@ impl Default for LocalizeOptions {
             window_fraction: 0.0,
             first_pass_threshold_cells: 3.0,
             refine_threshold_cells: 3.0,
+            featuremetric: Some(FeatureMetricConfig::default()),
         }
     }
 }
@@ -138,6 +151,10 @@ pub struct HypothesisReport {
     pub accepted: bool,
     /// Why it failed, when it did before PnP produced a pose.
     pub failure: Option<String>,
+    /// Feature-metric alignment contrast of the last pass (0 when refinement is off or failed;
+    /// see [`matloc_match::featuremetric::FeatureMetricOutcome::contrast`]).
+    #[serde(default)]
+    pub alignment: f64,
 }
 
 /// The result of localizing one query.
@@ -152,7 +169,7 @@ pub struct Localization {
     /// Hypotheses tried, in order.
     pub hypotheses: Vec<HypothesisReport>,
     /// Seconds per stage, summed over hypotheses and passes
-    /// (`place`, `encode`, `render`, `match`, `pnp`).
+    /// (`place`, `encode`, `render`, `match`, `pnp`, `refine`).
     pub stage_seconds: Vec<(String, f64)>,
     /// End-to-end seconds.
     pub total_seconds: f64,
@@ -212,6 +229,7 @@ impl Localizer<'_> {
         camera: &Camera,
         cam_from_world: &Pose,
         threshold_cells: f64,
+        refine_from_render: bool,
         rng: &mut ChaCha8Rng,
         clock: &mut StageClock,
     ) -> Result<Pass, PipelineError> {
@@ -237,15 +255,34 @@ impl Localizer<'_> {
         let threshold_px = threshold_cells * block.encoder.stride() as f64;
         let solved = solve_pose_within(&matches, camera, self.solver, Some(threshold_px), rng);
         clock.add("pnp", t);
+        let refined = match (&solved, &self.options.featuremetric) {
+            (Ok(r), Some(cfg)) => {
+                let t = Instant::now();
+                let init = if refine_from_render {
+                    cam_from_world
+                } else {
+                    &r.cam_from_world
+                };
+                let (stats, l2) = block.matcher.feature_space();
+                // Too few rendered points in view is not an error of the query: keep PnP's pose.
+                let out = refine_pose(query, &points, camera, init, None, stats, l2, cfg).ok();
+                clock.add("refine", t);
+                out.map(|o| (o.cam_from_world, o.contrast))
+            }
+            _ => None,
+        };
+        let alignment = refined.as_ref().map_or(0.0, |r| r.1);
+        let refined = refined.map(|r| r.0);
         Ok(match solved {
             Ok(r) => Pass {
-                pose: Some(r.cam_from_world),
+                pose: Some(refined.unwrap_or(r.cam_from_world)),
                 matches: matches.len(),
                 inliers: r.stats.num_inliers,
                 evidence: Evidence {
                     inliers: r.stats.num_inliers,
                     inlier_ratio: r.stats.inlier_ratio,
                     matches: matches.len(),
+                    alignment,
                 },
             },
             Err(_) => Pass {
@@ -256,6 +293,7 @@ impl Localizer<'_> {
                     inliers: 0,
                     inlier_ratio: 0.0,
                     matches: matches.len(),
+                    alignment: 0.0,
                 },
             },
         })
@@ -305,6 +343,7 @@ impl Localizer<'_> {
                 passes: 0,
                 accepted: false,
                 failure: None,
+                alignment: 0.0,
             };
             let Some(block) = self.blocks.get(block_id) else {
                 report.failure = Some(format!("no block {block_id} in the map"));
@@ -338,6 +377,7 @@ impl Localizer<'_> {
                     camera,
                     &pose,
                     threshold_cells,
+                    pass_index > 0,
                     &mut rng,
                     &mut clock,
                 ) {
@@ -351,6 +391,7 @@ impl Localizer<'_> {
                 report.passes = pass_index + 1;
                 report.matches = pass.matches;
                 report.inliers = pass.inliers;
+                report.alignment = pass.evidence.alignment;
                 let new_pose = pass.pose.filter(|p| {
                     translation_error_m(p, &hyp.cam_from_world) <= self.options.max_correction_m
                         && rotation_error_deg(p, &hyp.cam_from_world)

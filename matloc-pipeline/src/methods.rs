@@ -207,6 +207,7 @@ pub fn localize_with(
             passes: out.iterations as usize,
             accepted: out.cam_from_world.is_some(),
             failure: None,
+            alignment: 0.0,
         }],
         stage_seconds,
         total_seconds: start.elapsed().as_secs_f64(),

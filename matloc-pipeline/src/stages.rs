@@ -592,6 +592,7 @@ pub(crate) fn run_after_nerf(
                             rep.inliers as f64 / rep.matches as f64
                         },
                         matches: rep.matches,
+                        alignment: rep.alignment,
                     };
                     let (te, re) = match &out.cam_from_world {
                         Some(p) => (
