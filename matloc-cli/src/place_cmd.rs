@@ -87,6 +87,10 @@ pub struct EvalArgs {
     /// in embedding space (instead of the group medoid).
     #[arg(long)]
     refine: bool,
+    /// Also evaluate each classifier scoring groups with these weights of the best member
+    /// similarity (`PlaceModel::set_member_weight`), comma-separated.
+    #[arg(long, value_delimiter = ',')]
+    member_weight: Vec<f32>,
 }
 
 /// Runs a `matloc place` subcommand.
@@ -237,17 +241,28 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     for dir in &args.model {
         let mut model =
             PlaceModel::load(dir).with_context(|| format!("loading {}", dir.display()))?;
-        let mut variants = vec![false];
-        if args.refine && model.method() == PlaceMethod::ArcFace {
-            variants.push(true);
+        let mut variants = vec![(false, 0.0)];
+        if model.method() == PlaceMethod::ArcFace {
+            if args.refine {
+                variants.push((true, 0.0));
+            }
+            for &w in &args.member_weight {
+                variants.push((args.refine, w));
+            }
         }
-        for refine in variants {
+        for (refine, w) in variants {
             model.set_refine_within_group(refine);
+            model.set_member_weight(w);
             let row = evaluate(&model, &test, &train_camera, args.min_overlap)?;
             let name = format!(
-                "{:?}{} ({})",
+                "{:?}{}{} ({})",
                 model.method(),
                 if refine { "+member" } else { "" },
+                if w > 0.0 {
+                    format!(" w={w}")
+                } else {
+                    String::new()
+                },
                 short(dir)
             );
             println!(

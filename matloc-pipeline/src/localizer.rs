@@ -5,8 +5,9 @@
 //! Beyond the paper's single pass:
 //! - **top-k fallback**: when the best place hypothesis does not give a confident pose, the next
 //!   ones are tried (up to [`LocalizeOptions::top_k`]);
-//! - **iterative refinement**: after a confident pose, the map is re-rendered at the estimate
-//!   and matched again until the pose moves less than the convergence thresholds
+//! - **iterative refinement**: after a pose within the correction limits (confident or not), the
+//!   map is re-rendered at the estimate and matched again until the pose moves less than the
+//!   convergence thresholds
 //!   (up to [`LocalizeOptions::max_passes`] passes in all);
 //! - **feature-metric refinement**: after each pass's PnP the pose is refined against every
 //!   rendered point's feature, not only the mutual matches
@@ -407,9 +408,12 @@ impl Localizer<'_> {
                     break;
                 };
                 let c = self.options.confidence.confidence(&pass.evidence);
+                let threshold = self.options.confidence.accept_threshold;
                 // A refinement pass that loses the evidence keeps the earlier pose. (Comparing
-                // raw confidences would stop on noise once they saturate near 1.)
-                if pass_index > 0 && c < self.options.confidence.accept_threshold {
+                // raw confidences would stop on noise once they saturate near 1.) A weak first
+                // pass still gets its refinement passes: the render at a coarse pose metres off
+                // gives few matches, the render at the estimate many more.
+                if pass_index > 0 && c < threshold && c <= confidence {
                     break;
                 }
                 confidence = c;
@@ -419,9 +423,6 @@ impl Localizer<'_> {
                 pose = new_pose;
                 if best.as_ref().is_none_or(|b| c > b.0) {
                     best = Some((c, pass.inliers, pose));
-                }
-                if c < self.options.confidence.accept_threshold {
-                    break;
                 }
                 if pass_index > 0
                     && moved_t < self.options.converge_translation_m

@@ -20,6 +20,7 @@ pub use error::PlaceError;
 pub use groups::{GroupConfig, PoseGroup, PoseGroups, median_viewing_distance};
 pub use model::{ArcFaceConfig, NetConfig, arcface_loss, regression_loss};
 pub use predictor::{
-    EpochReport, MODEL_JSON, MODEL_WEIGHTS, PLACE_MODEL_VERSION, PlaceHypothesis, PlaceMethod,
-    PlaceModel, PlacePredictor, TrainConfig, surface_points, view_overlap, view_point_from_depth,
+    EpochReport, ExtraViews, MODEL_JSON, MODEL_WEIGHTS, PLACE_MODEL_VERSION, PlaceHypothesis,
+    PlaceMethod, PlaceModel, PlacePredictor, TrainConfig, surface_points, view_overlap,
+    view_point_from_depth,
 };

@@ -184,6 +184,8 @@ pub struct PlaceModel {
     member_poses: Vec<Pose>,
     /// Return the group member nearest in embedding space instead of the medoid.
     refine_within_group: bool,
+    /// Weight of the best member similarity in a group's score (0 = class centres only).
+    member_weight: f32,
     net: Net,
     device: Device,
 }
@@ -259,6 +261,20 @@ fn orientation(cam_from_world: &Pose) -> UnitQuaternion<f64> {
     }
 }
 
+/// Extra training views that are not group members: e.g. views rendered by the map's NeRFs at
+/// poses near the training poses (more images per group than the survey took). They are
+/// trained on like the members (same augmentation, every epoch) but do not become group
+/// members: coarse poses and within-group refinement use the real views only.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ExtraViews<'a> {
+    /// Images (any size; resized like the members).
+    pub images: &'a [Image<f32>],
+    /// Their `cam_from_world` (the regression baseline's targets).
+    pub poses: &'a [Pose],
+    /// Their group labels.
+    pub labels: &'a [usize],
+}
+
 impl PlaceModel {
     /// Trains a place model on `images` whose poses were grouped into `groups`
     /// (`groups.labels[i]` is the group of image `i`). `poses[i]` is image `i`'s
@@ -271,7 +287,50 @@ impl PlaceModel {
         config: &TrainConfig,
         progress: &mut dyn FnMut(EpochReport),
     ) -> Result<PlaceModel, PlaceError> {
+        Self::train_with_extra(
+            method,
+            images,
+            poses,
+            groups,
+            ExtraViews::default(),
+            config,
+            progress,
+        )
+    }
+
+    /// [`PlaceModel::train`] with [`ExtraViews`] in the training set.
+    pub fn train_with_extra(
+        method: PlaceMethod,
+        images: &[Image<f32>],
+        poses: &[Pose],
+        groups: &PoseGroups,
+        extra: ExtraViews<'_>,
+        config: &TrainConfig,
+        progress: &mut dyn FnMut(EpochReport),
+    ) -> Result<PlaceModel, PlaceError> {
         config.validate()?;
+        if extra.images.len() != extra.poses.len() || extra.images.len() != extra.labels.len() {
+            return Err(PlaceError::LengthMismatch {
+                what: "extra images vs extra poses / labels",
+                a: extra.images.len(),
+                b: if extra.images.len() != extra.poses.len() {
+                    extra.poses.len()
+                } else {
+                    extra.labels.len()
+                },
+            });
+        }
+        for (k, &label) in extra.labels.iter().enumerate() {
+            if label >= groups.len() {
+                return Err(PlaceError::BadLabel {
+                    index: images.len() + k,
+                    label,
+                    groups: groups.len(),
+                });
+            }
+        }
+        check_images(extra.images)?;
+        check_poses(extra.poses)?;
         if images.len() != poses.len() {
             return Err(PlaceError::LengthMismatch {
                 what: "images vs poses",
@@ -310,8 +369,10 @@ impl PlaceModel {
         // Augmentation samples from twice the input size, so crops and rotations keep detail.
         let sources: Vec<Image<f32>> = images
             .par_iter()
+            .chain(extra.images.par_iter())
             .map(|img| resize_area(img, 2 * w, 2 * h))
             .collect();
+        let labels: Vec<usize> = groups.labels.iter().chain(extra.labels).copied().collect();
 
         let centers: Vec<Vector3<f64>> = poses.iter().map(|p| camera_center(p).coords).collect();
         let mean = centers.iter().fold(Vector3::zeros(), |s, c| s + c) / centers.len() as f64;
@@ -324,9 +385,9 @@ impl PlaceModel {
             .max(1e-6);
         let targets: Vec<[f32; 7]> = poses
             .iter()
-            .zip(&centers)
-            .map(|(p, c)| {
-                let t = (c - mean) / scale;
+            .chain(extra.poses)
+            .map(|p| {
+                let t = (camera_center(p).coords - mean) / scale;
                 let q = orientation(p);
                 [t.x, t.y, t.z, q.w, q.i, q.j, q.k].map(|v| v as f32)
             })
@@ -345,7 +406,7 @@ impl PlaceModel {
             }
         };
         let mut optim = AdamConfig::new().init();
-        let n = images.len();
+        let n = sources.len();
         let bs = config.batch_size.min(n);
         let steps_per_epoch = n.div_ceil(bs);
         let total_steps = (steps_per_epoch * config.epochs).max(1);
@@ -377,8 +438,7 @@ impl PlaceModel {
                 let loss_value;
                 net = match net {
                     Net::ArcFace(model) => {
-                        let labels: Vec<i64> =
-                            batch.iter().map(|&i| groups.labels[i] as i64).collect();
+                        let labels: Vec<i64> = batch.iter().map(|&i| labels[i] as i64).collect();
                         let labels = Tensor::<1, Int>::from_data(
                             TensorData::new(labels, [batch.len()]),
                             &device,
@@ -432,6 +492,7 @@ impl PlaceModel {
             member_embeddings: Vec::new(),
             member_poses: poses.to_vec(),
             refine_within_group: false,
+            member_weight: 0.0,
             net,
             device: plain,
         };
@@ -470,6 +531,36 @@ impl PlaceModel {
     /// on the regression baseline).
     pub fn set_refine_within_group(&mut self, on: bool) {
         self.refine_within_group = on;
+    }
+
+    /// Scores groups by `(1 − w) ·` the cosine to the class centre `+ w ·` the best cosine to
+    /// one of the group's training images (classifier only; `w` is clamped to `[0, 1]`).
+    pub fn set_member_weight(&mut self, w: f32) {
+        self.member_weight = if w.is_finite() {
+            w.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+    }
+
+    /// Best cosine between `emb` and a training embedding of each group (`-1` for a group
+    /// without stored embeddings).
+    fn member_similarities(&self, emb: &[f32]) -> Vec<f32> {
+        let d = emb.len();
+        let mut best = vec![-1.0f32; self.groups.len()];
+        if d == 0 || self.member_embeddings.len() != d * self.member_poses.len() {
+            return best;
+        }
+        for (j, row) in self.member_embeddings.chunks_exact(d).enumerate() {
+            let Some(&g) = self.groups.labels.get(j) else {
+                continue;
+            };
+            let c: f32 = row.iter().zip(emb).map(|(a, b)| a * b).sum();
+            if let Some(b) = best.get_mut(g) {
+                *b = b.max(c);
+            }
+        }
+        best
     }
 
     /// Cosines to the class centres `[B, groups]` and unit embeddings `[B, D]` (classifier only;
@@ -704,6 +795,7 @@ impl PlaceModel {
             member_embeddings: file.member_embeddings,
             member_poses: file.member_poses,
             refine_within_group: false,
+            member_weight: 0.0,
             net,
             device,
         })
@@ -727,12 +819,22 @@ impl PlacePredictor for PlaceModel {
                 reason: format!("camera {cw}x{ch} does not match the image {iw}x{ih}"),
             });
         }
-        if self.refine_within_group && self.method == PlaceMethod::ArcFace {
-            let (cos, emb) = self.arcface_outputs(std::slice::from_ref(image))?;
+        if (self.refine_within_group || self.member_weight > 0.0)
+            && self.method == PlaceMethod::ArcFace
+        {
+            let (mut cos, emb) = self.arcface_outputs(std::slice::from_ref(image))?;
+            if self.member_weight > 0.0 {
+                let w = self.member_weight;
+                for (c, m) in cos.iter_mut().zip(self.member_similarities(&emb)) {
+                    *c = (1.0 - w) * *c + w * m;
+                }
+            }
             let mut h = self.hypotheses_from_output(&cos, k);
-            for x in &mut h {
-                if let Some(p) = self.nearest_member(x.group, &emb) {
-                    x.cam_from_world = p;
+            if self.refine_within_group {
+                for x in &mut h {
+                    if let Some(p) = self.nearest_member(x.group, &emb) {
+                        x.cam_from_world = p;
+                    }
                 }
             }
             return Ok(h);

@@ -4,8 +4,8 @@ use matloc_core::{Camera, Image, Pose};
 use matloc_data::Split;
 use matloc_data::synth::{self, RenderOptions, SynthConfig};
 use matloc_place::{
-    GroupConfig, PlaceError, PlaceMethod, PlaceModel, PlacePredictor, PoseGroups, TrainConfig,
-    view_overlap, view_point_from_depth,
+    ExtraViews, GroupConfig, PlaceError, PlaceMethod, PlaceModel, PlacePredictor, PoseGroups,
+    TrainConfig, view_overlap, view_point_from_depth,
 };
 
 struct View {
@@ -196,6 +196,44 @@ fn bad_input_gives_typed_errors() {
             &mut |_| {}
         ),
         Err(PlaceError::NonFinitePose { index: 2 })
+    ));
+    // Extra (e.g. NeRF-rendered) views: lengths must agree, labels must be groups.
+    let extra_img = vec![images[0].clone(), images[1].clone()];
+    let extra_pose = vec![poses[0], poses[1]];
+    let short = ExtraViews {
+        images: &extra_img,
+        poses: &extra_pose,
+        labels: &[0],
+    };
+    assert!(matches!(
+        PlaceModel::train_with_extra(
+            PlaceMethod::ArcFace,
+            &images,
+            &poses,
+            &g,
+            short,
+            &cfg,
+            &mut |_| {}
+        ),
+        Err(PlaceError::LengthMismatch { .. })
+    ));
+    let bad_label = [0, g.len()];
+    let wrong = ExtraViews {
+        images: &extra_img,
+        poses: &extra_pose,
+        labels: &bad_label,
+    };
+    assert!(matches!(
+        PlaceModel::train_with_extra(
+            PlaceMethod::ArcFace,
+            &images,
+            &poses,
+            &g,
+            wrong,
+            &cfg,
+            &mut |_| {}
+        ),
+        Err(PlaceError::BadLabel { .. })
     ));
     let few = GroupConfig {
         min_group_size: 100,
