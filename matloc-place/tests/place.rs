@@ -208,39 +208,28 @@ fn bad_input_gives_typed_errors() {
     // Extra (e.g. NeRF-rendered) views: lengths must agree, labels must be groups.
     let extra_img = vec![images[0].clone(), images[1].clone()];
     let extra_pose = vec![poses[0], poses[1]];
-    let short = ExtraViews {
-        images: &extra_img,
-        poses: &extra_pose,
-        labels: &[0],
-    };
-    assert!(matches!(
+    let train_extra = |labels: &[usize]| {
+        let extra = ExtraViews {
+            images: &extra_img,
+            poses: &extra_pose,
+            labels,
+        };
         PlaceModel::train_with_extra(
             PlaceMethod::ArcFace,
             &images,
             &poses,
             &g,
-            short,
+            extra,
             &cfg,
-            &mut |_| {}
-        ),
+            &mut |_| {},
+        )
+    };
+    assert!(matches!(
+        train_extra(&[0]),
         Err(PlaceError::LengthMismatch { .. })
     ));
-    let bad_label = [0, g.len()];
-    let wrong = ExtraViews {
-        images: &extra_img,
-        poses: &extra_pose,
-        labels: &bad_label,
-    };
     assert!(matches!(
-        PlaceModel::train_with_extra(
-            PlaceMethod::ArcFace,
-            &images,
-            &poses,
-            &g,
-            wrong,
-            &cfg,
-            &mut |_| {}
-        ),
+        train_extra(&[0, g.len()]),
         Err(PlaceError::BadLabel { .. })
     ));
     let few = GroupConfig {
