@@ -29,7 +29,7 @@
 //! learned encoder's spatially smooth errors do not show it.
 
 use crate::error::{MatchError, Side};
-use crate::mnn::{FeatureStats, check_selection, prepare_rows};
+use crate::mnn::{FeatureStats, prepare_rows, resolve_selection};
 use crate::types::{QueryFeatures, RenderedPoints};
 use matloc_core::{Camera, Pose};
 use nalgebra::{
@@ -137,20 +137,8 @@ pub fn refine_pose(
             config.levels, config.robust_scale
         )));
     }
-    let all: Vec<usize>;
-    let sel = match selection {
-        Some(s) => {
-            check_selection(s, qd)?;
-            s
-        }
-        None => {
-            all = (0..qd).collect();
-            &all
-        }
-    };
-    if sel.is_empty() {
-        return Err(MatchError::InvalidSelection("zero feature dims".into()));
-    }
+    let sel = resolve_selection(selection, qd)?;
+    let sel = &sel[..];
     let (w, h) = (query.map.width(), query.map.height());
     let qrows: Vec<usize> = (0..w * h).collect();
     let q0 = prepare_rows(

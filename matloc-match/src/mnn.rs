@@ -168,6 +168,24 @@ pub fn check_selection(sel: &[usize], dims: usize) -> Result<(), MatchError> {
     Ok(())
 }
 
+/// The dims to use: a checked `selection`, or all `dims` of the features when `None`.
+pub(crate) fn resolve_selection(
+    selection: Option<&[usize]>,
+    dims: usize,
+) -> Result<std::borrow::Cow<'_, [usize]>, MatchError> {
+    let sel = match selection {
+        Some(s) => {
+            check_selection(s, dims)?;
+            std::borrow::Cow::Borrowed(s)
+        }
+        None => std::borrow::Cow::Owned((0..dims).collect()),
+    };
+    if sel.is_empty() {
+        return Err(MatchError::InvalidSelection("zero feature dims".into()));
+    }
+    Ok(sel)
+}
+
 /// Gathers the rows `rows` of a row-major `? × dims` buffer into a dense matrix of the
 /// selected dims, standardised and L2-normalised as configured. `rows[k]` is reported as the
 /// index in errors.
@@ -366,20 +384,8 @@ impl Matcher for MnnMatcher {
         }
         map.check_nonempty()?;
         self.config.validate(qd)?;
-        let all: Vec<usize>;
-        let sel = match selection {
-            Some(s) => {
-                check_selection(s, qd)?;
-                s
-            }
-            None => {
-                all = (0..qd).collect();
-                &all
-            }
-        };
-        if sel.is_empty() {
-            return Err(MatchError::InvalidSelection("zero feature dims".into()));
-        }
+        let sel = resolve_selection(selection, qd)?;
+        let sel = &sel[..];
         let stats = self.config.stats.as_ref();
         let norm = self.config.l2_normalise;
         let qrows: Vec<usize> = (0..query.len()).collect();
