@@ -29,7 +29,7 @@
 //! learned encoder's spatially smooth errors do not show it.
 
 use crate::error::{MatchError, Side};
-use crate::mnn::{FeatureStats, prepare_rows, resolve_selection};
+use crate::mnn::{FeatureStats, check_inputs, prepare_rows, resolve_selection};
 use crate::types::{QueryFeatures, RenderedPoints};
 use matloc_core::{Camera, Pose};
 use nalgebra::{
@@ -115,17 +115,7 @@ pub fn refine_pose(
     l2_normalise: bool,
     config: &FeatureMetricConfig,
 ) -> Result<FeatureMetricOutcome, MatchError> {
-    let qd = query.map.channels();
-    if qd != map.dims() {
-        return Err(MatchError::DimensionMismatch {
-            query: qd,
-            map: map.dims(),
-        });
-    }
-    if query.is_empty() {
-        return Err(MatchError::Empty { side: Side::Query });
-    }
-    map.check_nonempty()?;
+    let qd = check_inputs(query, map)?;
     if config.levels.is_empty()
         || config.levels.iter().any(|s| !(s.is_finite() && *s >= 0.0))
         || config

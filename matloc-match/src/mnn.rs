@@ -168,6 +168,25 @@ pub fn check_selection(sel: &[usize], dims: usize) -> Result<(), MatchError> {
     Ok(())
 }
 
+/// Checks that query and map are non-empty and have the same dims; returns the dims.
+pub(crate) fn check_inputs(
+    query: &QueryFeatures,
+    map: &RenderedPoints,
+) -> Result<usize, MatchError> {
+    let qd = query.map.channels();
+    if qd != map.dims() {
+        return Err(MatchError::DimensionMismatch {
+            query: qd,
+            map: map.dims(),
+        });
+    }
+    if query.is_empty() {
+        return Err(MatchError::Empty { side: Side::Query });
+    }
+    map.check_nonempty()?;
+    Ok(qd)
+}
+
 /// The dims to use: a checked `selection`, or all `dims` of the features when `None`.
 pub(crate) fn resolve_selection(
     selection: Option<&[usize]>,
@@ -372,17 +391,7 @@ impl Matcher for MnnMatcher {
         map: &RenderedPoints,
         selection: Option<&[usize]>,
     ) -> Result<Vec<Match2d3d>, MatchError> {
-        let qd = query.map.channels();
-        if qd != map.dims() {
-            return Err(MatchError::DimensionMismatch {
-                query: qd,
-                map: map.dims(),
-            });
-        }
-        if query.is_empty() {
-            return Err(MatchError::Empty { side: Side::Query });
-        }
-        map.check_nonempty()?;
+        let qd = check_inputs(query, map)?;
         self.config.validate(qd)?;
         let sel = resolve_selection(selection, qd)?;
         let sel = &sel[..];

@@ -6,7 +6,7 @@
 use matloc_core::FeatureMap;
 use matloc_core::metrics::{median, rotation_error_deg, translation_error_m};
 use matloc_data::dataset::Split;
-use matloc_data::synth::{SynthConfig, World, plan_survey};
+use matloc_data::synth::{SurveyPlan, SynthConfig, World, plan_survey};
 use matloc_match::gt::{PerturbKind, Perturbation, ViewRenderer};
 use matloc_match::localize::{
     LocalizeConfig, correct_matches, localize, render_map_points, solve_pose, timed_match,
@@ -19,14 +19,20 @@ use matloc_pnp::LoRansacPnp;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-#[test]
-fn localizes_from_a_perturbed_pose() {
+/// The tiny preset's survey plan, its analytic feature renderer and all of its feature dims.
+fn tiny_scene() -> (SurveyPlan, SynthFeatureRenderer, Vec<usize>) {
     let cfg = SynthConfig::preset("tiny").unwrap();
     let world = World::generate(&cfg.world, cfg.seed).unwrap();
     let plan = plan_survey(&world, &cfg.survey, cfg.seed).unwrap();
     let renderer =
         SynthFeatureRenderer::new(world, SynthFeatureField::new(SynthFieldConfig::default()));
     let all: Vec<usize> = (0..renderer.num_features()).collect();
+    (plan, renderer, all)
+}
+
+#[test]
+fn localizes_from_a_perturbed_pose() {
+    let (plan, renderer, all) = tiny_scene();
     let tests: Vec<_> = plan
         .frames
         .iter()
@@ -156,12 +162,7 @@ fn dimension_mismatch_and_empty_map_are_typed_errors() {
 #[test]
 fn feature_metric_refinement_keeps_exact_matching_accuracy() {
     use matloc_match::featuremetric::{FeatureMetricConfig, refine_pose};
-    let cfg = SynthConfig::preset("tiny").unwrap();
-    let world = World::generate(&cfg.world, cfg.seed).unwrap();
-    let plan = plan_survey(&world, &cfg.survey, cfg.seed).unwrap();
-    let renderer =
-        SynthFeatureRenderer::new(world, SynthFeatureField::new(SynthFieldConfig::default()));
-    let all: Vec<usize> = (0..renderer.num_features()).collect();
+    let (plan, renderer, all) = tiny_scene();
     let perturb = Perturbation {
         kind: PerturbKind::UniformBall,
         translation_m: 3.0,
