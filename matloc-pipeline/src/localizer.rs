@@ -107,6 +107,16 @@ pub struct LocalizeOptions {
     /// 1.58 m (8/30 within 1 m); + refinement 0.71 m (23/30); re-rendered at that pose and
     /// refined again 0.48 m (22/30), vs 0.62 m when the second round starts from its PnP pose.
     pub featuremetric: Option<FeatureMetricConfig>,
+    /// Steps of the ray-marching grid of every render through a map loaded by
+    /// [`crate::stages::LoadedBlocks`] (0 = each model's own setting, 256 for survey scenes).
+    /// The baseline methods render through the same models, so they get the same setting.
+    /// Default 128: the steps span each ray's box-clipped range (tens of metres), so 256 is
+    /// finer than the rendered cells need, and samples per ray scale with the steps (37.9 at
+    /// 256, 19.1 at 128 on `small`). Measured on the session-7 maps (recalibrated, 2 passes):
+    /// `small` 0.408 m / 0.323 s per query at 256, 0.367 m / 0.218 s at 128, 0.370 m / 0.199 s
+    /// at 96, 0.859 m / 0.186 s at 64; `rubble` 0.211 m / 0.298 s at 256, 0.199 m / 0.205 s at
+    /// 128, 0.199 m / 0.175 s at 96.
+    pub render_steps: usize,
 }
 
 impl Default for LocalizeOptions {
@@ -125,6 +135,7 @@ impl Default for LocalizeOptions {
             first_pass_threshold_cells: 3.0,
             refine_threshold_cells: 3.0,
             featuremetric: Some(FeatureMetricConfig::default()),
+            render_steps: 128,
         }
     }
 }
