@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
+use matloc_core::metrics::translation_error_m;
 use matloc_core::{Camera, Image, Pose};
 use matloc_data::{Dataset, Split};
 use matloc_place::{
@@ -91,6 +92,10 @@ pub struct EvalArgs {
     /// similarity (`PlaceModel::set_member_weight`), comma-separated.
     #[arg(long, value_delimiter = ',')]
     member_weight: Vec<f32>,
+    /// Also evaluate each classifier (with `--refine`) blending the nearest member's pose with
+    /// its best neighbour's at these temperatures (`PlaceModel::set_member_blend`).
+    #[arg(long, value_delimiter = ',')]
+    member_blend: Vec<f32>,
 }
 
 /// Runs a `matloc place` subcommand.
@@ -235,27 +240,32 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     let test = load_frames(&dataset, &test_idx, "loading", quiet)?;
     let train_camera = dataset.frames[train_idx.first().copied().unwrap_or(0)].camera;
     println!(
-        "{:<34} {:>10} {:>10} {:>8} {:>8} {:>12}",
-        "model", "ms/query", "(median)", "top-1", "top-3", "co-visible"
+        "{:<40} {:>10} {:>10} {:>8} {:>8} {:>12} {:>14}",
+        "model", "ms/query", "(median)", "top-1", "top-3", "co-visible", "coarse t (m)"
     );
     for dir in &args.model {
         let mut model =
             PlaceModel::load(dir).with_context(|| format!("loading {}", dir.display()))?;
-        let mut variants = vec![(false, 0.0)];
+        // (refine within group, member weight, blend temperature)
+        let mut variants = vec![(false, 0.0, 0.0)];
         if model.method() == PlaceMethod::ArcFace {
             if args.refine {
-                variants.push((true, 0.0));
+                variants.push((true, 0.0, 0.0));
+                for &t in &args.member_blend {
+                    variants.push((true, 0.0, t));
+                }
             }
             for &w in &args.member_weight {
-                variants.push((args.refine, w));
+                variants.push((args.refine, w, 0.0));
             }
         }
-        for (refine, w) in variants {
+        for (refine, w, blend) in variants {
             model.set_refine_within_group(refine);
             model.set_member_weight(w);
+            model.set_member_blend(blend);
             let row = evaluate(&model, &test, &train_camera, args.min_overlap)?;
             let name = format!(
-                "{:?}{}{} ({})",
+                "{:?}{}{}{} ({})",
                 model.method(),
                 if refine { "+member" } else { "" },
                 if w > 0.0 {
@@ -263,16 +273,22 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
                 } else {
                     String::new()
                 },
+                if blend > 0.0 {
+                    format!(" blend={blend}")
+                } else {
+                    String::new()
+                },
                 short(dir)
             );
             println!(
-                "{:<34} {:>10.2} {:>10.2} {:>7.1}% {:>7.1}% {:>11.1}%",
+                "{:<40} {:>10.2} {:>10.2} {:>7.1}% {:>7.1}% {:>11.1}% {:>14.2}",
                 name,
                 row.mean_ms,
                 row.median_ms,
                 100.0 * row.top1,
                 100.0 * row.top3,
-                100.0 * row.covisible
+                100.0 * row.covisible,
+                row.median_coarse_m
             );
         }
     }
@@ -296,6 +312,8 @@ struct Row {
     top1: f64,
     top3: f64,
     covisible: f64,
+    /// Median distance of the top-1 coarse camera centre to the truth.
+    median_coarse_m: f64,
 }
 
 fn evaluate(
@@ -307,6 +325,7 @@ fn evaluate(
     let groups = model.groups();
     let (mut top1, mut top3, mut covis) = (0usize, 0usize, 0usize);
     let mut times = Vec::new();
+    let mut coarse_m = Vec::new();
     // One warm-up query so the first timing does not include lazy initialisation.
     model.predict(&test.images[0], &test.cameras[0], 3)?;
     for i in 0..test.poses.len() {
@@ -319,6 +338,7 @@ fn evaluate(
         top1 += usize::from(h.first().is_some_and(|x| x.group == truth));
         top3 += usize::from(h.iter().any(|x| x.group == truth));
         if let Some(best) = h.first() {
+            coarse_m.push(translation_error_m(&best.cam_from_world, &test.poses[i]));
             let o = view_overlap(
                 &test.cameras[i],
                 &test.poses[i],
@@ -338,5 +358,10 @@ fn evaluate(
         top1: top1 as f64 / n,
         top3: top3 as f64 / n,
         covisible: covis as f64 / n,
+        median_coarse_m: if coarse_m.is_empty() {
+            f64::NAN
+        } else {
+            median(&mut coarse_m)
+        },
     })
 }

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::prelude::*;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
-use matloc_core::pose::camera_center;
+use matloc_core::pose::{camera_center, viewing_direction};
 use matloc_core::{Camera, Image, Pose};
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
@@ -186,6 +186,11 @@ pub struct PlaceModel {
     refine_within_group: bool,
     /// Weight of the best member similarity in a group's score (0 = class centres only).
     member_weight: f32,
+    /// Softmax temperature of the blend of the nearest member with its best neighbour
+    /// (0 = no blend).
+    member_blend: f32,
+    /// Keep the nearest member as the top hypothesis and add the blend as a second one.
+    blend_as_extra: bool,
     net: Net,
     device: Device,
 }
@@ -493,6 +498,8 @@ impl PlaceModel {
             member_poses: poses.to_vec(),
             refine_within_group: false,
             member_weight: 0.0,
+            member_blend: 0.0,
+            blend_as_extra: false,
             net,
             device: plain,
         };
@@ -531,6 +538,22 @@ impl PlaceModel {
     /// on the regression baseline).
     pub fn set_refine_within_group(&mut self, on: bool) {
         self.refine_within_group = on;
+    }
+
+    /// Blends the nearest member's pose with its most similar neighbour's (within two group
+    /// radii and the group angle), weighting the neighbour by `1 / (1 + exp((s₁ − s₂) / t))`
+    /// for embedding cosines `s₁ ≥ s₂`: a query taken between two survey poses gets a coarse
+    /// pose between them. `t = 0` (or not finite) turns the blend off. Needs
+    /// [`Self::set_refine_within_group`].
+    pub fn set_member_blend(&mut self, t: f32) {
+        self.member_blend = if t.is_finite() { t.max(0.0) } else { 0.0 };
+    }
+
+    /// With a blend temperature set: keep the nearest member as the top group's coarse pose
+    /// and return the blended pose as an extra second hypothesis of the same group (tried
+    /// only when the first fails) instead of replacing it.
+    pub fn set_blend_as_extra(&mut self, on: bool) {
+        self.blend_as_extra = on;
     }
 
     /// Scores groups by `(1 − w) ·` the cosine to the class centre `+ w ·` the best cosine to
@@ -580,25 +603,63 @@ impl PlaceModel {
         Ok((tensor_to_vec(cos), tensor_to_vec(e)))
     }
 
-    /// The member of group `group` whose training embedding is closest to `emb`.
-    fn nearest_member(&self, group: usize, emb: &[f32]) -> Option<Pose> {
+    /// Cosine between `emb` and training embedding `j`.
+    fn member_cosine(&self, j: usize, emb: &[f32]) -> f32 {
+        let d = emb.len();
+        self.member_embeddings[j * d..(j + 1) * d]
+            .iter()
+            .zip(emb)
+            .map(|(a, b)| a * b)
+            .sum()
+    }
+
+    /// The pose the classifier returns for `group` when refining within the group: the member
+    /// whose training embedding is closest to `emb`, blended with its best neighbour when a
+    /// blend temperature is set.
+    fn member_pose(&self, group: usize, emb: &[f32], blend: bool) -> Option<Pose> {
         let d = emb.len();
         if d == 0 || self.member_embeddings.len() != d * self.member_poses.len() {
             return None;
         }
-        let dot = |j: usize| -> f32 {
-            self.member_embeddings[j * d..(j + 1) * d]
-                .iter()
-                .zip(emb)
-                .map(|(a, b)| a * b)
-                .sum()
-        };
-        self.groups.groups[group]
+        let j1 = self.groups.groups[group]
             .members
             .iter()
             .copied()
-            .max_by(|&a, &b| dot(a).total_cmp(&dot(b)).then(b.cmp(&a)))
-            .map(|j| self.member_poses[j])
+            .filter(|&j| j < self.member_poses.len())
+            .max_by(|&a, &b| {
+                self.member_cosine(a, emb)
+                    .total_cmp(&self.member_cosine(b, emb))
+                    .then(b.cmp(&a))
+            })?;
+        let p1 = self.member_poses[j1];
+        if !blend || self.member_blend <= 0.0 {
+            return Some(p1);
+        }
+        // The best neighbour of any group: a query between two survey poses is usually
+        // nearest one of them and about as similar to the other, which can sit across a group
+        // boundary. Neighbours are within two group radii and the groups' angle bound.
+        let (c1, v1) = (camera_center(&p1), viewing_direction(&p1));
+        let radius = 2.0 * self.groups.spatial_radius_m;
+        let max_angle = self.groups.config.max_angle_deg.to_radians();
+        let j2 = (0..self.member_poses.len())
+            .filter(|&j| j != j1)
+            .filter(|&j| {
+                let p = &self.member_poses[j];
+                (camera_center(p) - c1).norm() <= radius
+                    && viewing_direction(p).dot(&v1).clamp(-1.0, 1.0).acos() <= max_angle
+            })
+            .max_by(|&a, &b| {
+                self.member_cosine(a, emb)
+                    .total_cmp(&self.member_cosine(b, emb))
+                    .then(b.cmp(&a))
+            });
+        let Some(j2) = j2 else {
+            return Some(p1);
+        };
+        let (s1, s2) = (self.member_cosine(j1, emb), self.member_cosine(j2, emb));
+        // Softmax weight of the neighbour: ½ for equal similarities, → 0 as it falls behind.
+        let w2 = 1.0 / (1.0 + ((s1 - s2) / self.member_blend).exp());
+        Some(blend_poses(&p1, &self.member_poses[j2], f64::from(w2)))
     }
 
     /// Raw network outputs for a batch of images: `[B, groups]` cosines (ArcFace) or `[B, 7]`
@@ -796,6 +857,8 @@ impl PlaceModel {
             member_poses: file.member_poses,
             refine_within_group: false,
             member_weight: 0.0,
+            member_blend: 0.0,
+            blend_as_extra: false,
             net,
             device,
         })
@@ -831,10 +894,21 @@ impl PlacePredictor for PlaceModel {
             }
             let mut h = self.hypotheses_from_output(&cos, k);
             if self.refine_within_group {
+                let extra = self.blend_as_extra && self.member_blend > 0.0;
                 for x in &mut h {
-                    if let Some(p) = self.nearest_member(x.group, &emb) {
+                    if let Some(p) = self.member_pose(x.group, &emb, !extra) {
                         x.cam_from_world = p;
                     }
+                }
+                if extra
+                    && let Some(first) = h.first()
+                    && let Some(p) = self.member_pose(first.group, &emb, true)
+                {
+                    let second = PlaceHypothesis {
+                        cam_from_world: p,
+                        ..first.clone()
+                    };
+                    h.insert(1, second);
                 }
             }
             return Ok(h);
@@ -842,6 +916,20 @@ impl PlacePredictor for PlaceModel {
         let out = self.forward_batch(std::slice::from_ref(image))?;
         Ok(self.hypotheses_from_output(&out, k))
     }
+}
+
+/// The pose `w` of the way from `a` to `b`: camera centres interpolated linearly, rotations
+/// by slerp (`a` when they are opposite).
+fn blend_poses(a: &Pose, b: &Pose, w: f64) -> Pose {
+    let c = camera_center(a).coords.lerp(&camera_center(b).coords, w);
+    let r = a
+        .rotation
+        .try_slerp(&b.rotation, w, 1e-9)
+        .unwrap_or(a.rotation);
+    // Slerp of nearly equal rotations divides by a small sine: renormalise so the centre
+    // survives the round trip through `t = −R c`.
+    let r = UnitQuaternion::new_normalize(r.into_inner());
+    Pose::from_parts(Translation3::from(-(r * c)), r)
 }
 
 /// Mean of the surface points a pose sees, from its z-depth map (every `stride`-th pixel):
@@ -924,4 +1012,34 @@ pub fn view_overlap(
         })
         .count();
     seen as f64 / pts.len() as f64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn pose(yaw: f64, pitch: f64, c: [f64; 3]) -> Pose {
+        let r = UnitQuaternion::from_euler_angles(pitch, 0.0, yaw);
+        Pose::from_parts(Translation3::from(-(r * Vector3::from(c))), r)
+    }
+
+    proptest! {
+        #[test]
+        fn blend_interpolates_centres_and_rotations(
+            y1 in -3.0f64..3.0, y2 in -0.5f64..0.5, p in -1.0f64..1.0,
+            c1 in proptest::array::uniform3(-50.0f64..50.0),
+            c2 in proptest::array::uniform3(-50.0f64..50.0),
+            w in 0.0f64..1.0,
+        ) {
+            let (a, b) = (pose(y1, p, c1), pose(y1 + y2, p, c2));
+            let m = blend_poses(&a, &b, w);
+            let expect = Vector3::from(c1).lerp(&Vector3::from(c2), w);
+            prop_assert!((camera_center(&m).coords - expect).norm() < 1e-9);
+            let (ta, tb) = (m.rotation.angle_to(&a.rotation), m.rotation.angle_to(&b.rotation));
+            let total = a.rotation.angle_to(&b.rotation);
+            prop_assert!((ta - w * total).abs() < 1e-9 && (tb - (1.0 - w) * total).abs() < 1e-9);
+            prop_assert!((blend_poses(&a, &b, 0.0).translation.vector - a.translation.vector).norm() < 1e-9);
+        }
+    }
 }

@@ -174,6 +174,32 @@ fn arcface_place_model_beats_chance_and_round_trips() {
             );
         }
     }
+
+    // The blended coarse pose as an extra hypothesis: the top group's nearest member first,
+    // then the same group at a pose between that member and a neighbour within two radii.
+    back.set_refine_within_group(true);
+    back.set_member_blend(0.25);
+    back.set_blend_as_extra(true);
+    let centre = matloc_core::pose::camera_center;
+    for v in s.test.iter().take(5) {
+        let h = back.predict(&v.image, &s.camera, 2).unwrap();
+        assert_eq!(h.len(), 3.min(g.len() + 1));
+        assert_eq!(h[1].group, h[0].group);
+        assert!(
+            g.groups[h[0].group]
+                .members
+                .iter()
+                .any(|&m| poses[m] == h[0].cam_from_world)
+        );
+        let apart = (centre(&h[1].cam_from_world) - centre(&h[0].cam_from_world)).norm();
+        assert!(apart <= 2.0 * g.spatial_radius_m + 1e-9, "{apart}");
+        // Replacing instead: as many hypotheses as asked, the top one the blend.
+        back.set_blend_as_extra(false);
+        let r = back.predict(&v.image, &s.camera, 2).unwrap();
+        assert_eq!(r.len(), 2.min(g.len()));
+        assert_eq!(r[0].cam_from_world, h[1].cam_from_world);
+        back.set_blend_as_extra(true);
+    }
 }
 
 #[test]
