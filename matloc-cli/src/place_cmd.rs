@@ -297,7 +297,41 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
         test.poses.len(),
         100.0 * args.min_overlap
     );
+    if let Some(dir) = args.model.first() {
+        let model = PlaceModel::load(dir)?;
+        if let Some(o) = retrieval_oracle(&model, &test.poses) {
+            println!(
+                "top-1 of perfect retrieval (the group of the training pose nearest each query, \
+                 centre distance + 20 m per radian of viewing angle): {:.1}%",
+                100.0 * o
+            );
+        }
+    }
     Ok(())
+}
+
+/// Fraction of `queries` whose group is the group of their nearest training pose: an upper
+/// bound for place recognition by image retrieval against the training views.
+fn retrieval_oracle(model: &PlaceModel, queries: &[Pose]) -> Option<f64> {
+    use matloc_core::metrics::rotation_error_deg;
+    let groups = model.groups();
+    let train = model.training_poses();
+    if queries.is_empty() || train.len() != groups.labels.len() {
+        return None;
+    }
+    let mut hits = 0usize;
+    for q in queries {
+        let truth = groups.assign(q)?;
+        let nearest = (0..train.len()).min_by(|&a, &b| {
+            let cost = |j: usize| {
+                translation_error_m(&train[j], q)
+                    + 20.0 * rotation_error_deg(&train[j], q).to_radians()
+            };
+            cost(a).total_cmp(&cost(b))
+        })?;
+        hits += usize::from(groups.labels[nearest] == truth);
+    }
+    Some(hits as f64 / queries.len() as f64)
 }
 
 fn short(p: &Path) -> String {

@@ -523,6 +523,11 @@ impl PlaceModel {
         &self.groups
     }
 
+    /// `cam_from_world` of the training images, in the order of `groups().labels`.
+    pub fn training_poses(&self) -> &[Pose] {
+        &self.member_poses
+    }
+
     /// Mutable pose groups (e.g. to attach partition blocks after training).
     pub fn groups_mut(&mut self) -> &mut PoseGroups {
         &mut self.groups
