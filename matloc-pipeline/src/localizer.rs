@@ -117,6 +117,12 @@ pub struct LocalizeOptions {
     /// at 96, 0.859 m / 0.186 s at 64; `rubble` 0.211 m / 0.298 s at 256, 0.199 m / 0.205 s at
     /// 128, 0.199 m / 0.175 s at 96.
     pub render_steps: usize,
+    /// Hypotheses after the first with a place score below this are not tried (they are
+    /// sorted by score, so the rest are skipped too). A refused query otherwise pays for
+    /// every hypothesis: on the sixth `small` demo map 8 refused queries took 0.43 s each
+    /// against 0.16 s for an accepted one, and 7 of 58 hypotheses scored below 0.01. No
+    /// hypothesis after the first that was accepted on four maps scored below 0.02.
+    pub min_place_score: f32,
 }
 
 impl Default for LocalizeOptions {
@@ -136,6 +142,7 @@ impl Default for LocalizeOptions {
             refine_threshold_cells: 3.0,
             featuremetric: Some(FeatureMetricConfig::default()),
             render_steps: 128,
+            min_place_score: 0.01,
         }
     }
 }
@@ -342,7 +349,10 @@ impl Localizer<'_> {
         let mut reports = Vec::new();
         let mut best: Option<(f64, usize, Pose)> = None;
         let mut accepted = None;
-        for hyp in &hypotheses {
+        for (index, hyp) in hypotheses.iter().enumerate() {
+            if index > 0 && hyp.score < self.options.min_place_score {
+                break;
+            }
             let block_id = hyp.block.unwrap_or(0);
             let mut report = HypothesisReport {
                 group: hyp.group,

@@ -197,6 +197,29 @@ fn falls_back_to_the_next_hypothesis() {
     );
     assert!(out.hypotheses[0].failure.is_some());
     assert!(out.cam_from_world.is_some());
+    // A later hypothesis the place stage all but rules out is not tried.
+    let unlikely = PlaceHypothesis {
+        score: 0.005,
+        ..hyp(3, good, 0)
+    };
+    let out = run(
+        &s,
+        vec![hyp(7, sky, 0), unlikely.clone()],
+        false,
+        LocalizeOptions::default(),
+    );
+    assert_eq!(out.hypotheses.len(), 1, "{:?}", out.hypotheses);
+    assert!(out.cam_from_world.is_none());
+    let out = run(
+        &s,
+        vec![hyp(7, sky, 0), unlikely],
+        false,
+        LocalizeOptions {
+            min_place_score: 0.0,
+            ..LocalizeOptions::default()
+        },
+    );
+    assert!(out.hypotheses[1].accepted);
 }
 
 #[test]
