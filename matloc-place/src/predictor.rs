@@ -626,16 +626,20 @@ impl PlaceModel {
         if d == 0 || self.member_embeddings.len() != d * self.member_poses.len() {
             return None;
         }
-        let j1 = self.groups.groups[group]
-            .members
-            .iter()
-            .copied()
-            .filter(|&j| j < self.member_poses.len())
-            .max_by(|&a, &b| {
-                self.member_cosine(a, emb)
-                    .total_cmp(&self.member_cosine(b, emb))
-                    .then(b.cmp(&a))
-            })?;
+        let cos: Vec<f32> = (0..self.member_poses.len())
+            .map(|j| self.member_cosine(j, emb))
+            .collect();
+        // Most similar index; ties go to the lower index.
+        let most_similar = |it: &mut dyn Iterator<Item = usize>| {
+            it.max_by(|&a, &b| cos[a].total_cmp(&cos[b]).then(b.cmp(&a)))
+        };
+        let j1 = most_similar(
+            &mut self.groups.groups[group]
+                .members
+                .iter()
+                .copied()
+                .filter(|&j| j < cos.len()),
+        )?;
         let p1 = self.member_poses[j1];
         if !blend || self.member_blend <= 0.0 {
             return Some(p1);
@@ -646,22 +650,15 @@ impl PlaceModel {
         let (c1, v1) = (camera_center(&p1), viewing_direction(&p1));
         let radius = 2.0 * self.groups.spatial_radius_m;
         let max_angle = self.groups.config.max_angle_deg.to_radians();
-        let j2 = (0..self.member_poses.len())
-            .filter(|&j| j != j1)
-            .filter(|&j| {
-                let p = &self.member_poses[j];
-                (camera_center(p) - c1).norm() <= radius
-                    && viewing_direction(p).dot(&v1).clamp(-1.0, 1.0).acos() <= max_angle
-            })
-            .max_by(|&a, &b| {
-                self.member_cosine(a, emb)
-                    .total_cmp(&self.member_cosine(b, emb))
-                    .then(b.cmp(&a))
-            });
-        let Some(j2) = j2 else {
+        let Some(j2) = most_similar(&mut (0..cos.len()).filter(|&j| {
+            let p = &self.member_poses[j];
+            j != j1
+                && (camera_center(p) - c1).norm() <= radius
+                && viewing_direction(p).dot(&v1).clamp(-1.0, 1.0).acos() <= max_angle
+        })) else {
             return Some(p1);
         };
-        let (s1, s2) = (self.member_cosine(j1, emb), self.member_cosine(j2, emb));
+        let (s1, s2) = (cos[j1], cos[j2]);
         // Softmax weight of the neighbour: ½ for equal similarities, → 0 as it falls behind.
         let w2 = 1.0 / (1.0 + ((s1 - s2) / self.member_blend).exp());
         Some(blend_poses(&p1, &self.member_poses[j2], f64::from(w2)))
