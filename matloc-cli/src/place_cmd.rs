@@ -302,7 +302,7 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
         if let Some(o) = retrieval_oracle(&model, &test.poses) {
             println!(
                 "top-1 of perfect retrieval (the group of the training pose nearest each query, \
-                 centre distance + 20 m per radian of viewing angle): {:.1}%",
+                 centre distance + 20 m per radian of rotation): {:.1}%",
                 100.0 * o
             );
         }

@@ -574,16 +574,14 @@ impl PlaceModel {
     /// Best cosine between `emb` and a training embedding of each group (`-1` for a group
     /// without stored embeddings).
     fn member_similarities(&self, emb: &[f32]) -> Vec<f32> {
-        let d = emb.len();
         let mut best = vec![-1.0f32; self.groups.len()];
-        if d == 0 || self.member_embeddings.len() != d * self.member_poses.len() {
+        let Some(cos) = self.member_cosines(emb) else {
             return best;
-        }
-        for (j, row) in self.member_embeddings.chunks_exact(d).enumerate() {
+        };
+        for (j, c) in cos.into_iter().enumerate() {
             let Some(&g) = self.groups.labels.get(j) else {
                 continue;
             };
-            let c: f32 = row.iter().zip(emb).map(|(a, b)| a * b).sum();
             if let Some(b) = best.get_mut(g) {
                 *b = b.max(c);
             }
@@ -608,27 +606,26 @@ impl PlaceModel {
         Ok((tensor_to_vec(cos), tensor_to_vec(e)))
     }
 
-    /// Cosine between `emb` and training embedding `j`.
-    fn member_cosine(&self, j: usize, emb: &[f32]) -> f32 {
+    /// Cosine between `emb` and every training embedding (`None` without stored embeddings
+    /// of that size).
+    fn member_cosines(&self, emb: &[f32]) -> Option<Vec<f32>> {
         let d = emb.len();
-        self.member_embeddings[j * d..(j + 1) * d]
-            .iter()
-            .zip(emb)
-            .map(|(a, b)| a * b)
-            .sum()
+        if d == 0 || self.member_embeddings.len() != d * self.member_poses.len() {
+            return None;
+        }
+        Some(
+            self.member_embeddings
+                .chunks_exact(d)
+                .map(|row| row.iter().zip(emb).map(|(a, b)| a * b).sum())
+                .collect(),
+        )
     }
 
     /// The pose the classifier returns for `group` when refining within the group: the member
     /// whose training embedding is closest to `emb`, blended with its best neighbour when a
     /// blend temperature is set.
     fn member_pose(&self, group: usize, emb: &[f32], blend: bool) -> Option<Pose> {
-        let d = emb.len();
-        if d == 0 || self.member_embeddings.len() != d * self.member_poses.len() {
-            return None;
-        }
-        let cos: Vec<f32> = (0..self.member_poses.len())
-            .map(|j| self.member_cosine(j, emb))
-            .collect();
+        let cos = self.member_cosines(emb)?;
         // Most similar index; ties go to the lower index.
         let most_similar = |it: &mut dyn Iterator<Item = usize>| {
             it.max_by(|&a, &b| cos[a].total_cmp(&cos[b]).then(b.cmp(&a)))
