@@ -14,7 +14,8 @@
 //!   ([`LocalizeOptions::featuremetric`]);
 //! - **calibrated confidence and refusal**: every attempt is scored by the
 //!   [`ConfidenceModel`]; below its threshold the query is reported as not localized instead
-//!   of returning a wrong pose.
+//!   of returning a wrong pose; under it, a pass whose PnP consensus chance could produce
+//!   (a-contrario test, [`LocalizeOptions::max_log10_nfa`]) is refused whatever its score.
 
 use std::time::Instant;
 
@@ -26,6 +27,7 @@ use matloc_match::localize::{LocalizeError, render_map_points, solve_pose_within
 use matloc_match::{Matcher, QueryFeatures};
 use matloc_place::PlacePredictor;
 use matloc_pnp::PoseSolver;
+use matloc_pnp::significance::{chance_inlier_probability, log10_nfa};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -123,6 +125,16 @@ pub struct LocalizeOptions {
     /// against 0.16 s for an accepted one, and 7 of 58 hypotheses scored below 0.01. No
     /// hypothesis after the first that was accepted on four maps scored below 0.02.
     pub min_place_score: f32,
+    /// A pass's PnP consensus must be beyond chance: its a-contrario number of false alarms
+    /// ([`matloc_pnp::significance`], wrong matches uniform over the image, the PnP inlier
+    /// radius) must be below `10^max_log10_nfa`, or the pass is refused whatever the
+    /// calibrated confidence says (`+∞` turns the test off). The confidence is fitted on a few
+    /// dozen calibration attempts; on a CI-sized map with 3 correct ones among 24 it accepted
+    /// 9–10 inliers of ~25 matches, which chance reaches (log10 NFA ≈ 0). On the `small` and
+    /// `rubble` calibration sets 1 of 46 correct attempts each is above 0 (7 of 95 and 11 of
+    /// 212 inliers), and 11–14 of ~50 wrong ones are below it: the test is a floor under the
+    /// calibrated confidence, not a replacement.
+    pub max_log10_nfa: f64,
 }
 
 impl Default for LocalizeOptions {
@@ -143,6 +155,7 @@ impl Default for LocalizeOptions {
             featuremetric: Some(FeatureMetricConfig::default()),
             render_steps: 128,
             min_place_score: 0.01,
+            max_log10_nfa: 0.0,
         }
     }
 }
@@ -174,6 +187,10 @@ pub struct HypothesisReport {
     /// see [`matloc_match::featuremetric::FeatureMetricOutcome::contrast`]).
     #[serde(default)]
     pub alignment: f64,
+    /// Base-10 log of the a-contrario number of false alarms of the last pass's PnP consensus
+    /// (`None` when PnP gave no pose or the consensus was no larger than a minimal sample).
+    #[serde(default)]
+    pub log10_nfa: Option<f64>,
 }
 
 /// The result of localizing one query.
@@ -225,6 +242,8 @@ struct Pass {
     matches: usize,
     inliers: usize,
     evidence: Evidence,
+    /// See [`HypothesisReport::log10_nfa`] (`+∞` when not measured).
+    log10_nfa: f64,
 }
 
 impl Localizer<'_> {
@@ -297,6 +316,13 @@ impl Localizer<'_> {
                 pose: Some(refined.unwrap_or(r.cam_from_world)),
                 matches: matches.len(),
                 inliers: r.stats.num_inliers,
+                // P3P samples three matches.
+                log10_nfa: log10_nfa(
+                    matches.len(),
+                    r.stats.num_inliers,
+                    3,
+                    chance_inlier_probability(threshold_px, camera.width, camera.height),
+                ),
                 evidence: Evidence {
                     inliers: r.stats.num_inliers,
                     inlier_ratio: r.stats.inlier_ratio,
@@ -308,6 +334,7 @@ impl Localizer<'_> {
                 pose: None,
                 matches: matches.len(),
                 inliers: 0,
+                log10_nfa: f64::INFINITY,
                 evidence: Evidence {
                     inliers: 0,
                     inlier_ratio: 0.0,
@@ -366,6 +393,7 @@ impl Localizer<'_> {
                 accepted: false,
                 failure: None,
                 alignment: 0.0,
+                log10_nfa: None,
             };
             let Some(block) = self.blocks.get(block_id) else {
                 report.failure = Some(format!("no block {block_id} in the map"));
@@ -414,6 +442,7 @@ impl Localizer<'_> {
                 report.matches = pass.matches;
                 report.inliers = pass.inliers;
                 report.alignment = pass.evidence.alignment;
+                report.log10_nfa = pass.log10_nfa.is_finite().then_some(pass.log10_nfa);
                 let new_pose = pass.pose.filter(|p| {
                     translation_error_m(p, &hyp.cam_from_world) <= self.options.max_correction_m
                         && rotation_error_deg(p, &hyp.cam_from_world)
@@ -428,7 +457,13 @@ impl Localizer<'_> {
                     }
                     break;
                 };
-                let c = self.options.confidence.confidence(&pass.evidence);
+                // A consensus chance could produce scores 0, but its pose still seeds the next
+                // pass: from a coarse pose metres off, the first render gives few matches.
+                let c = if pass.log10_nfa <= self.options.max_log10_nfa {
+                    self.options.confidence.confidence(&pass.evidence)
+                } else {
+                    0.0
+                };
                 let threshold = self.options.confidence.accept_threshold;
                 // A refinement pass that loses the evidence keeps the earlier pose. (Comparing
                 // raw confidences would stop on noise once they saturate near 1.) A weak first

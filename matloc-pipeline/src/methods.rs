@@ -208,6 +208,7 @@ pub fn localize_with(
             accepted: out.cam_from_world.is_some(),
             failure: None,
             alignment: 0.0,
+            log10_nfa: None,
         }],
         stage_seconds,
         total_seconds: start.elapsed().as_secs_f64(),

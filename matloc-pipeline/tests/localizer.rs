@@ -10,6 +10,7 @@ use matloc_data::synth::{SynthConfig, World, plan_survey};
 use matloc_match::gt::ViewRenderer;
 use matloc_match::synth_view::{SynthFeatureField, SynthFeatureRenderer, SynthFieldConfig};
 use matloc_match::{MnnConfig, MnnMatcher};
+use matloc_pipeline::confidence::ConfidenceModel;
 use matloc_pipeline::stages::FixedPlace;
 use matloc_pipeline::{
     LocalizeOptions, Localizer, LocalizerBlock, PipelineError, QueryFeatureEncoder,
@@ -238,6 +239,47 @@ fn an_unrelated_image_is_refused() {
         out.confidence,
         out.inliers
     );
+}
+
+#[test]
+fn a_chance_consensus_is_refused_whatever_the_confidence_model_says() {
+    let s = scene();
+    let coarse = perturbed(&s.query_pose, 1.0, 1.0);
+    // A confidence model that trusts any pose PnP returns, wherever it lands.
+    let credulous = LocalizeOptions {
+        max_correction_m: f64::INFINITY,
+        max_correction_deg: 180.0,
+        confidence: ConfidenceModel {
+            weights: [10.0, 0.0, 0.0, 0.0],
+            alignment_weight: 0.0,
+            accept_threshold: 0.5,
+        },
+        ..LocalizeOptions::default()
+    };
+    let ungated = run(
+        &s,
+        vec![hyp(0, coarse, 0)],
+        true,
+        LocalizeOptions {
+            max_log10_nfa: f64::INFINITY,
+            ..credulous.clone()
+        },
+    );
+    let h = &ungated.hypotheses[0];
+    println!("ungated: {h:?}");
+    assert!(
+        ungated.cam_from_world.is_some(),
+        "random features gave no pose at all, so this test shows nothing: {h:?}"
+    );
+    let gated = run(&s, vec![hyp(0, coarse, 0)], true, credulous.clone());
+    let h = &gated.hypotheses[0];
+    assert!(gated.cam_from_world.is_none(), "{h:?}");
+    assert!(h.log10_nfa.is_none_or(|v| v > 0.0), "{h:?}");
+    // The real query's consensus is far beyond chance.
+    let real = run(&s, vec![hyp(0, coarse, 0)], false, credulous);
+    let h = &real.hypotheses[0];
+    assert!(real.cam_from_world.is_some(), "{h:?}");
+    assert!(h.log10_nfa.is_some_and(|v| v < -20.0), "{h:?}");
 }
 
 #[test]

@@ -7,6 +7,8 @@
 //!   PROSAC), MSAC scoring with the threshold in pixels, adaptive termination by confidence.
 //! - [`refine_pose()`]: Levenberg–Marquardt on the reprojection error in pixels through the full
 //!   camera model (OpenCV distortion included), with a [`RobustLoss`].
+//! - [`significance`]: the a-contrario number of false alarms of a consensus (could these
+//!   inliers be chance?).
 //! - [`PoseSolver`]: the object-safe interface; [`LoRansacPnp`] is P3P in LO-RANSAC followed by
 //!   robust refinement, [`EpnpPnp`] fits clean inlier sets.
 //!
@@ -63,6 +65,7 @@ pub mod p3p;
 mod poly;
 pub mod ransac;
 pub mod refine;
+pub mod significance;
 pub mod solver;
 pub mod synthetic;
 
