@@ -1,9 +1,13 @@
 //! Tiled MNN tables vs the materialised faer GEMM baseline, 4800 × 4800 (an 80 × 60 query
-//! against 80 × 60 rendered features) at the feature widths of the paper's Table 3.
+//! against 80 × 60 rendered features) at the feature widths of the paper's Table 3; and the
+//! whole matcher, global vs windowed.
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use matloc_core::FeatureMap;
 use matloc_match::kernel::{nn_tables_faer, nn_tables_tiled};
-use matloc_match::{MnnConfig, mnn_prepared};
+use matloc_match::{
+    Matcher, MnnConfig, MnnMatcher, QueryFeatures, QueryGrid, RenderedPoints, mnn_prepared,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::hint::black_box;
@@ -45,5 +49,39 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+/// The whole matcher on an 80 × 60 query against an 80 × 60 render at 47 dims: global MNN vs
+/// the image-space window the localizer uses (0.2 × 320 px = 64 px).
+fn bench_window(c: &mut Criterion) {
+    let (cols, rows, d) = (80usize, 60usize, 47usize);
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let q = unit_rows(&mut rng, cols * rows, d);
+    let m = unit_rows(&mut rng, cols * rows, d);
+    let query = QueryFeatures::new(FeatureMap::from_vec(cols, rows, d, q).unwrap(), 4.0);
+    let points: Vec<[f64; 3]> = (0..cols * rows).map(|i| [i as f64, 0.0, 1.0]).collect();
+    let map = RenderedPoints::all_valid(d, m, points)
+        .unwrap()
+        .with_grid(cols, rows)
+        .unwrap()
+        .with_pixel_grid(QueryGrid::with_stride(4.0))
+        .unwrap();
+    let mut g = c.benchmark_group("mnn_matcher_80x60_d47");
+    g.sample_size(10);
+    for (name, window_px) in [
+        ("global", None),
+        ("window_16px", Some(16.0)),
+        ("window_32px", Some(32.0)),
+        ("window_64px", Some(64.0)),
+    ] {
+        let matcher = MnnMatcher::new(MnnConfig {
+            window_px,
+            ..Default::default()
+        });
+        g.bench_function(name, |bch| {
+            bch.iter(|| black_box(matcher.match_features(&query, &map, None).unwrap()))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench, bench_window);
 criterion_main!(benches);

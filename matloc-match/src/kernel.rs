@@ -33,7 +33,7 @@ pub struct NnTable {
 }
 
 impl NnTable {
-    fn empty(len: usize) -> Self {
+    pub(crate) fn empty(len: usize) -> Self {
         NnTable {
             best: vec![f32::NEG_INFINITY; len],
             second: vec![f32::NEG_INFINITY; len],
@@ -53,7 +53,7 @@ impl NnTable {
 
     /// Folds `(value, index)` into entry `e`, keeping the lowest index among ties.
     #[inline]
-    fn push(&mut self, e: usize, value: f32, index: u32) {
+    pub(crate) fn push(&mut self, e: usize, value: f32, index: u32) {
         let best = self.best[e];
         if value > best || (value == best && index < self.arg[e]) {
             self.second[e] = best;
@@ -65,7 +65,7 @@ impl NnTable {
     }
 
     /// Merges another partial table over disjoint index sets of the other side.
-    fn merge(&mut self, other: &NnTable) {
+    pub(crate) fn merge(&mut self, other: &NnTable) {
         for e in 0..self.len() {
             let (b0, b1) = (self.best[e], other.best[e]);
             let second = self.second[e].max(other.second[e]).max(b0.min(b1));
@@ -89,7 +89,7 @@ pub struct NnTables {
 
 /// Dot product with the exact operation order every kernel here uses.
 #[inline(always)]
-fn dot_fma(a: &[f32], b: &[f32]) -> f32 {
+pub(crate) fn dot_fma(a: &[f32], b: &[f32]) -> f32 {
     let mut acc = 0.0f32;
     for (x, y) in a.iter().zip(b) {
         acc = x.mul_add(*y, acc);

@@ -364,6 +364,13 @@ pub trait Matcher: Send + Sync {
     fn feature_space(&self) -> (Option<&FeatureStats>, bool) {
         (None, true)
     }
+
+    /// Radius in pixels of the image-space window matches are restricted to (`None`: the
+    /// whole image). A pose solver's test of "could these inliers be chance" needs it: inside
+    /// a window a wrong match lands near its rendered pixel, not anywhere in the image.
+    fn window_px(&self) -> Option<f64> {
+        None
+    }
 }
 
 /// Mutual-nearest-neighbour matcher on normalised features (see [`MnnConfig`]).
@@ -383,6 +390,10 @@ impl MnnMatcher {
 impl Matcher for MnnMatcher {
     fn feature_space(&self) -> (Option<&FeatureStats>, bool) {
         (self.config.stats.as_ref(), self.config.l2_normalise)
+    }
+
+    fn window_px(&self) -> Option<f64> {
+        self.config.window_px
     }
 
     fn match_features(

@@ -143,15 +143,15 @@ fn tiny_map_is_built_resumed_and_localizes() {
          perfect encoder {oracle_ok} within 1 m / 2 deg, errors {oracle_t:?}",
         tests.len()
     );
-    // Measured 2026-12-01: 5 of 10 within 0.2–0.62 m from the top-1 place hypothesis; the
-    // others start 8–50 m or 90–180 degrees away (wrong place) and are refused.
+    // Measured 2026-12-02 (blended fallback hypothesis): 10 of 10 within 0.03–0.53 m.
     assert!(
         oracle_ok >= 3,
         "perfect-encoder run: only {oracle_ok} of 10 localized"
     );
-    // The learned encoder does not localize this CI-sized map yet (see docs/BENCHMARKS.md);
-    // what must hold is that the calibrated confidence refuses instead of returning wrong
-    // poses.
+    // The learned encoder is at the edge of working on this CI-sized map (measured
+    // 2026-12-02: 3–6 of 10 within 1 m across builds; most maps built with other seeds refuse
+    // everything, see docs/BENCHMARKS.md); what must hold is that the calibrated confidence
+    // and the a-contrario floor refuse instead of returning wrong poses.
     assert!(matloc_false <= 1, "{matloc_false} wrong poses returned");
 
     // An unrelated image (flat grey) is refused, not given a pose.

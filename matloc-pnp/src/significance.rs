@@ -49,6 +49,23 @@ pub fn chance_inlier_probability(radius_px: f64, width: u32, height: u32) -> f64
     (std::f64::consts::PI * radius_px * radius_px / area).min(1.0)
 }
 
+/// [`chance_inlier_probability`] when matches were restricted to an image-space window of
+/// radius `window_px` around each point's predicted pixel: a chance match then lands anywhere
+/// in that disc, not in the image, so the probability is the larger of `(r / window)²` and
+/// the whole-image one.
+pub fn chance_inlier_probability_windowed(
+    radius_px: f64,
+    width: u32,
+    height: u32,
+    window_px: Option<f64>,
+) -> f64 {
+    let image = chance_inlier_probability(radius_px, width, height);
+    match window_px {
+        Some(w) if w > 0.0 => image.max((radius_px / w).powi(2).min(1.0)),
+        _ => image,
+    }
+}
+
 /// `ln C(n, k)` by summing logarithms (exact enough for the counts of one image's matches,
 /// and no gamma function needed).
 fn ln_choose(n: usize, k: usize) -> f64 {
@@ -84,6 +101,27 @@ mod tests {
         // A 320×240 map with 60 of 200 inliers: overwhelming.
         let p = chance_inlier_probability(12.0, 320, 240);
         assert!(log10_nfa(200, 60, 3, p) < -50.0);
+    }
+
+    #[test]
+    fn a_window_raises_the_chance_probability() {
+        let image = chance_inlier_probability(12.0, 160, 120);
+        assert_eq!(
+            chance_inlier_probability_windowed(12.0, 160, 120, None),
+            image
+        );
+        // 32 px window: (12 / 32)² = 0.14, six times the whole-image 0.024.
+        let w = chance_inlier_probability_windowed(12.0, 160, 120, Some(32.0));
+        assert!((w - 0.140625).abs() < 1e-12);
+        // A window larger than the image changes nothing.
+        assert_eq!(
+            chance_inlier_probability_windowed(12.0, 160, 120, Some(1e4)),
+            image
+        );
+        assert_eq!(
+            chance_inlier_probability_windowed(12.0, 160, 120, Some(5.0)),
+            1.0
+        );
     }
 
     #[test]
