@@ -119,7 +119,7 @@ pub(crate) fn nn_tables_windowed(
 ) -> NnTables {
     let (n, m) = (query.n(), map.n());
     const CHUNK: usize = 256;
-    let parts: Vec<(usize, NnTable, NnTable)> = (0..n.div_ceil(CHUNK))
+    let parts: Vec<(NnTable, NnTable)> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
         .map(|c| {
             let (i0, i1) = (c * CHUNK, ((c + 1) * CHUNK).min(n));
@@ -146,15 +146,16 @@ pub(crate) fn nn_tables_windowed(
                     push(j, dot_fma(a, b));
                 }
             }
-            (i0, rows, cols)
+            (rows, cols)
         })
         .collect();
-    let mut rows = NnTable::empty(n);
+    // Chunks come back in order, so the row tables concatenate.
+    let mut rows = NnTable::empty(0);
     let mut cols = NnTable::empty(m);
-    for (i0, r, c) in parts {
-        rows.best[i0..i0 + r.len()].copy_from_slice(&r.best);
-        rows.second[i0..i0 + r.len()].copy_from_slice(&r.second);
-        rows.arg[i0..i0 + r.len()].copy_from_slice(&r.arg);
+    for (r, c) in parts {
+        rows.best.extend(r.best);
+        rows.second.extend(r.second);
+        rows.arg.extend(r.arg);
         cols.merge(&c);
     }
     NnTables { rows, cols }

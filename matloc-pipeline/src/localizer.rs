@@ -15,7 +15,7 @@
 //! - **calibrated confidence and refusal**: every attempt is scored by the
 //!   [`ConfidenceModel`]; below its threshold the query is reported as not localized instead
 //!   of returning a wrong pose; under it, a pass whose PnP consensus chance could produce
-//!   (a-contrario test, [`LocalizeOptions::max_log10_nfa`]) is refused whatever its score.
+//!   (a-contrario test, [`LocalizeOptions::max_log10_nfa`]) scores 0 whatever the model says.
 
 use std::time::Instant;
 
@@ -27,7 +27,7 @@ use matloc_match::localize::{LocalizeError, render_map_points, solve_pose_within
 use matloc_match::{Matcher, QueryFeatures};
 use matloc_place::PlacePredictor;
 use matloc_pnp::PoseSolver;
-use matloc_pnp::significance::{chance_inlier_probability_windowed, log10_nfa};
+use matloc_pnp::significance::{chance_inlier_probability, log10_nfa};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -133,8 +133,9 @@ pub struct LocalizeOptions {
     pub min_place_score: f32,
     /// A pass's PnP consensus must be beyond chance: its a-contrario number of false alarms
     /// ([`matloc_pnp::significance`], wrong matches uniform over the image or over the
-    /// matching window when there is one, the PnP inlier radius) must be below `10^max_log10_nfa`, or the pass is refused whatever the
-    /// calibrated confidence says (`+∞` turns the test off). The confidence is fitted on a few
+    /// matching window when there is one, the PnP inlier radius) must be below
+    /// `10^max_log10_nfa`, or the pass scores 0 whatever the calibrated confidence says (its
+    /// pose still seeds the next pass; `+∞` turns the test off). The confidence is fitted on a few
     /// dozen calibration attempts; on a CI-sized map with 3 correct ones among 24 it accepted
     /// 9–10 inliers of ~25 matches, which chance reaches (log10 NFA ≈ 0). On the `small` and
     /// `rubble` calibration sets 1 of 46 correct attempts each is above 0 (7 of 95 and 11 of
@@ -327,7 +328,7 @@ impl Localizer<'_> {
                     matches.len(),
                     r.stats.num_inliers,
                     3,
-                    chance_inlier_probability_windowed(
+                    chance_inlier_probability(
                         threshold_px,
                         camera.width,
                         camera.height,

@@ -40,26 +40,21 @@ pub fn log10_nfa(
 }
 
 /// Probability that a chance match lands within `radius_px` of its predicted pixel in a
-/// `width × height` image (the disc's area over the image's, at most 1).
-pub fn chance_inlier_probability(radius_px: f64, width: u32, height: u32) -> f64 {
-    let area = width as f64 * height as f64;
-    if !(area > 0.0) {
-        return 1.0;
-    }
-    (std::f64::consts::PI * radius_px * radius_px / area).min(1.0)
-}
-
-/// [`chance_inlier_probability`] when matches were restricted to an image-space window of
-/// radius `window_px` around each point's predicted pixel: a chance match then lands anywhere
-/// in that disc, not in the image, so the probability is the larger of `(r / window)²` and
-/// the whole-image one.
-pub fn chance_inlier_probability_windowed(
+/// `width × height` image: the disc's area over the image's, at most 1. When matches were
+/// restricted to an image-space window of radius `window_px` around each point's predicted
+/// pixel, a chance match lands anywhere in that disc instead, so the probability is the
+/// larger of `(radius / window)²` and the whole-image one.
+pub fn chance_inlier_probability(
     radius_px: f64,
     width: u32,
     height: u32,
     window_px: Option<f64>,
 ) -> f64 {
-    let image = chance_inlier_probability(radius_px, width, height);
+    let area = width as f64 * height as f64;
+    if !(area > 0.0) {
+        return 1.0;
+    }
+    let image = (std::f64::consts::PI * radius_px * radius_px / area).min(1.0);
     match window_px {
         Some(w) if w > 0.0 => image.max((radius_px / w).powi(2).min(1.0)),
         _ => image,
@@ -91,7 +86,7 @@ mod tests {
     #[test]
     fn noise_level_consensus_is_not_significant_and_a_real_one_is() {
         // 160×120 query, 3-cell (12 px) radius: p ≈ 0.024.
-        let p = chance_inlier_probability(12.0, 160, 120);
+        let p = chance_inlier_probability(12.0, 160, 120, None);
         assert!((p - 0.02356).abs() < 1e-4);
         // 6 or 7 of 25 matches: what the tiny map's wrong places give.
         assert!(log10_nfa(25, 6, 3, p) > 1.0);
@@ -99,29 +94,20 @@ mod tests {
         // 12 of 25 is beyond chance.
         assert!(log10_nfa(25, 12, 3, p) < -1.0);
         // A 320×240 map with 60 of 200 inliers: overwhelming.
-        let p = chance_inlier_probability(12.0, 320, 240);
+        let p = chance_inlier_probability(12.0, 320, 240, None);
         assert!(log10_nfa(200, 60, 3, p) < -50.0);
     }
 
     #[test]
     fn a_window_raises_the_chance_probability() {
-        let image = chance_inlier_probability(12.0, 160, 120);
-        assert_eq!(
-            chance_inlier_probability_windowed(12.0, 160, 120, None),
-            image
-        );
+        let image = std::f64::consts::PI * 12.0 * 12.0 / (160.0 * 120.0);
+        assert_eq!(chance_inlier_probability(12.0, 160, 120, None), image);
         // 32 px window: (12 / 32)² = 0.14, six times the whole-image 0.024.
-        let w = chance_inlier_probability_windowed(12.0, 160, 120, Some(32.0));
+        let w = chance_inlier_probability(12.0, 160, 120, Some(32.0));
         assert!((w - 0.140625).abs() < 1e-12);
         // A window larger than the image changes nothing.
-        assert_eq!(
-            chance_inlier_probability_windowed(12.0, 160, 120, Some(1e4)),
-            image
-        );
-        assert_eq!(
-            chance_inlier_probability_windowed(12.0, 160, 120, Some(5.0)),
-            1.0
-        );
+        assert_eq!(chance_inlier_probability(12.0, 160, 120, Some(1e4)), image);
+        assert_eq!(chance_inlier_probability(12.0, 160, 120, Some(5.0)), 1.0);
     }
 
     #[test]
@@ -130,8 +116,8 @@ mod tests {
         assert_eq!(log10_nfa(10, 11, 3, 0.01), f64::INFINITY);
         assert_eq!(log10_nfa(10, 5, 3, 0.0), f64::INFINITY);
         assert_eq!(log10_nfa(10, 5, 3, f64::NAN), f64::INFINITY);
-        assert_eq!(chance_inlier_probability(1e6, 10, 10), 1.0);
-        assert_eq!(chance_inlier_probability(3.0, 0, 10), 1.0);
+        assert_eq!(chance_inlier_probability(1e6, 10, 10, None), 1.0);
+        assert_eq!(chance_inlier_probability(3.0, 0, 10, None), 1.0);
     }
 
     proptest! {
