@@ -317,25 +317,25 @@ pub(crate) fn nn_tables_windowed(
                 }
                 i += nq;
             }
-            // Column table over prepared map rows.
-            let mut by_row = NnTable::empty(m);
-            for j in 0..m {
-                let cell = map.cell(j);
-                by_row.best[j] = cols.best[cell];
-                by_row.second[j] = cols.second[cell];
-                by_row.arg[j] = cols.arg[cell];
-            }
-            (rows, by_row)
+            (rows, cols)
         })
         .collect();
-    // Chunks come back in order, so the row tables concatenate.
+    // Chunks come back in order, so the row tables concatenate; the column tables merge over
+    // grid cells, then move to prepared map rows once.
     let mut rows = NnTable::empty(0);
-    let mut cols = NnTable::empty(m);
+    let mut by_cell = NnTable::empty(stride);
     for (r, c) in parts {
         rows.best.extend(r.best);
         rows.second.extend(r.second);
         rows.arg.extend(r.arg);
-        cols.merge(&c);
+        by_cell.merge(&c);
+    }
+    let mut cols = NnTable::empty(m);
+    for j in 0..m {
+        let cell = map.cell(j);
+        cols.best[j] = by_cell.best[cell];
+        cols.second[j] = by_cell.second[cell];
+        cols.arg[j] = by_cell.arg[cell];
     }
     NnTables { rows, cols }
 }
