@@ -35,6 +35,7 @@ use matloc_core::{Camera, Pose};
 use nalgebra::{
     Matrix2x3, Matrix3, Matrix6, Point3, Translation3, UnitQuaternion, Vector3, Vector6,
 };
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Settings of [`refine_pose`].
@@ -324,24 +325,30 @@ impl Level {
         points: &[Point3<f64>],
         shift: [f64; 2],
     ) -> f64 {
-        let mut qv = vec![0.0; self.d];
-        let (mut sum, mut n) = (0.0, 0usize);
         let st = query.grid.stride;
-        for (j, x) in points.iter().enumerate() {
-            let Some(c) = camera
-                .project_world(pose, x)
-                .and_then(|p| self.cell_of(query, [p.x + shift[0] * st, p.y + shift[1] * st]))
-            else {
-                continue;
-            };
-            self.sample(&self.q, c, &mut qv);
-            let f = &self.feats[j * self.d..(j + 1) * self.d];
-            sum += qv.iter().zip(f).map(|(a, &b)| a * b as f64).sum::<f64>();
-            n += 1;
-        }
+        let (sum, n) = per_chunk(points, |j0, chunk| {
+            let mut qv = vec![0.0; self.d];
+            let (mut sum, mut n) = (0.0, 0usize);
+            for (j, x) in (j0..).zip(chunk) {
+                let Some(c) = camera
+                    .project_world(pose, x)
+                    .and_then(|p| self.cell_of(query, [p.x + shift[0] * st, p.y + shift[1] * st]))
+                else {
+                    continue;
+                };
+                self.sample(&self.q, c, &mut qv);
+                let f = &self.feats[j * self.d..(j + 1) * self.d];
+                sum += qv.iter().zip(f).map(|(a, &b)| a * b as f64).sum::<f64>();
+                n += 1;
+            }
+            (sum, n)
+        })
+        .into_iter()
+        .fold((0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         if n == 0 { 0.0 } else { sum / n as f64 }
     }
 
+    /// Residual norms of the points whose projection lies inside the map, in point order.
     fn residual_norms(
         &self,
         query: &QueryFeatures,
@@ -349,26 +356,29 @@ impl Level {
         pose: &Pose,
         points: &[Point3<f64>],
     ) -> Vec<f64> {
-        let mut qv = vec![0.0; self.d];
-        let mut out = Vec::with_capacity(points.len());
-        for (j, x) in points.iter().enumerate() {
-            let Some(c) = camera
-                .project_world(pose, x)
-                .and_then(|p| self.cell_of(query, [p.x, p.y]))
-            else {
-                continue;
-            };
-            self.sample(&self.q, c, &mut qv);
-            let f = &self.feats[j * self.d..(j + 1) * self.d];
-            out.push(
-                qv.iter()
-                    .zip(f)
-                    .map(|(a, &b)| (a - b as f64).powi(2))
-                    .sum::<f64>()
-                    .sqrt(),
-            );
-        }
-        out
+        per_chunk(points, |j0, chunk| {
+            let mut qv = vec![0.0; self.d];
+            let mut out = Vec::with_capacity(chunk.len());
+            for (j, x) in (j0..).zip(chunk) {
+                let Some(c) = camera
+                    .project_world(pose, x)
+                    .and_then(|p| self.cell_of(query, [p.x, p.y]))
+                else {
+                    continue;
+                };
+                self.sample(&self.q, c, &mut qv);
+                let f = &self.feats[j * self.d..(j + 1) * self.d];
+                out.push(
+                    qv.iter()
+                        .zip(f)
+                        .map(|(a, &b)| (a - b as f64).powi(2))
+                        .sum::<f64>()
+                        .sqrt(),
+                );
+            }
+            out
+        })
+        .concat()
     }
 
     /// Mean Cauchy cost per point (points outside count at [`OUTSIDE_RESIDUAL2`]) and the
@@ -400,47 +410,70 @@ impl Level {
     ) -> (Matrix6<f64>, Vector6<f64>) {
         let s2 = scale * scale;
         let inv_stride = 1.0 / query.grid.stride;
-        let mut hess = Matrix6::zeros();
-        let mut grad = Vector6::zeros();
-        let (mut qv, mut gxv, mut gyv) = (vec![0.0; self.d], vec![0.0; self.d], vec![0.0; self.d]);
-        for (j, x) in points.iter().enumerate() {
-            let xc = pose * x;
-            let Some(p) = camera.project(&xc.coords) else {
-                continue;
-            };
-            let Some(c) = self.cell_of(query, [p.x, p.y]) else {
-                continue;
-            };
-            self.sample(&self.q, c, &mut qv);
-            self.sample(&self.gx, c, &mut gxv);
-            self.sample(&self.gy, c, &mut gyv);
-            let f = &self.feats[j * self.d..(j + 1) * self.d];
-            // JᵀJ (2×2) and Jᵀr (2) with respect to the cell coordinates.
-            let (mut gg, mut gr, mut r2) = ([0.0f64; 3], [0.0f64; 2], 0.0);
-            for k in 0..self.d {
-                let r = qv[k] - f[k] as f64;
-                r2 += r * r;
-                gg[0] += gxv[k] * gxv[k];
-                gg[1] += gxv[k] * gyv[k];
-                gg[2] += gyv[k] * gyv[k];
-                gr[0] += gxv[k] * r;
-                gr[1] += gyv[k] * r;
+        per_chunk(points, |j0, chunk| {
+            let mut hess = Matrix6::zeros();
+            let mut grad = Vector6::zeros();
+            let (mut qv, mut gxv, mut gyv) =
+                (vec![0.0; self.d], vec![0.0; self.d], vec![0.0; self.d]);
+            for (j, x) in (j0..).zip(chunk) {
+                let xc = pose * x;
+                let Some(p) = camera.project(&xc.coords) else {
+                    continue;
+                };
+                let Some(c) = self.cell_of(query, [p.x, p.y]) else {
+                    continue;
+                };
+                self.sample(&self.q, c, &mut qv);
+                self.sample(&self.gx, c, &mut gxv);
+                self.sample(&self.gy, c, &mut gyv);
+                let f = &self.feats[j * self.d..(j + 1) * self.d];
+                // JᵀJ (2×2) and Jᵀr (2) with respect to the cell coordinates.
+                let (mut gg, mut gr, mut r2) = ([0.0f64; 3], [0.0f64; 2], 0.0);
+                for k in 0..self.d {
+                    let r = qv[k] - f[k] as f64;
+                    r2 += r * r;
+                    gg[0] += gxv[k] * gxv[k];
+                    gg[1] += gxv[k] * gyv[k];
+                    gg[2] += gyv[k] * gyv[k];
+                    gr[0] += gxv[k] * r;
+                    gr[1] += gyv[k] * r;
+                }
+                let weight = 1.0 / (1.0 + r2 / s2);
+                // d(cell)/d(δ) = d(cell)/d(px) · d(px)/d(X_c) · d(X_c)/d(δ).
+                let jp = projection_jacobian(camera, &xc.coords) * inv_stride;
+                let mut dx = nalgebra::Matrix3x6::zeros();
+                dx.fixed_view_mut::<3, 3>(0, 0)
+                    .copy_from(&Matrix3::identity());
+                dx.fixed_view_mut::<3, 3>(0, 3)
+                    .copy_from(&(-xc.coords.cross_matrix()));
+                let a = jp * dx; // 2×6
+                let g2 = nalgebra::Matrix2::new(gg[0], gg[1], gg[1], gg[2]);
+                hess += weight * a.transpose() * g2 * a;
+                grad += weight * a.transpose() * nalgebra::Vector2::new(gr[0], gr[1]);
             }
-            let weight = 1.0 / (1.0 + r2 / s2);
-            // d(cell)/d(δ) = d(cell)/d(px) · d(px)/d(X_c) · d(X_c)/d(δ).
-            let jp = projection_jacobian(camera, &xc.coords) * inv_stride;
-            let mut dx = nalgebra::Matrix3x6::zeros();
-            dx.fixed_view_mut::<3, 3>(0, 0)
-                .copy_from(&Matrix3::identity());
-            dx.fixed_view_mut::<3, 3>(0, 3)
-                .copy_from(&(-xc.coords.cross_matrix()));
-            let a = jp * dx; // 2×6
-            let g2 = nalgebra::Matrix2::new(gg[0], gg[1], gg[1], gg[2]);
-            hess += weight * a.transpose() * g2 * a;
-            grad += weight * a.transpose() * nalgebra::Vector2::new(gr[0], gr[1]);
-        }
-        (hess, grad)
+            (hess, grad)
+        })
+        .into_iter()
+        .fold((Matrix6::zeros(), Vector6::zeros()), |a, b| {
+            (a.0 + b.0, a.1 + b.1)
+        })
     }
+}
+
+/// Points per parallel work item of the per-point sums. Fixed, so the partial sums (and the
+/// refined pose) do not depend on the number of threads.
+const POINT_CHUNK: usize = 256;
+
+/// `f(first index, chunk)` over fixed chunks of `points`, in parallel, results in order.
+fn per_chunk<T: Send>(
+    points: &[Point3<f64>],
+    f: impl Fn(usize, &[Point3<f64>]) -> T + Sync,
+) -> Vec<T> {
+    points
+        .par_chunks(POINT_CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| f(c * POINT_CHUNK, chunk))
+        .collect()
 }
 
 /// d(pixel)/d(camera-frame point), lens distortion included.
@@ -612,6 +645,32 @@ mod tests {
         assert!(t1 < 0.05 * t0, "start {t0:.3} m -> {t1:.3} m");
         assert!(r1 < 0.1, "rotation error {r1:.3} deg");
         assert!(out.final_cost < out.initial_cost);
+    }
+
+    /// The per-point sums are split into fixed chunks, so the thread count cannot change them.
+    #[test]
+    fn result_does_not_depend_on_the_thread_count() {
+        let (camera, _, query, map, start) = scene(Vector3::new(0.6, -0.4, 0.5));
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    refine_pose(
+                        &query,
+                        &map,
+                        &camera,
+                        &start,
+                        None,
+                        None,
+                        false,
+                        &FeatureMetricConfig::default(),
+                    )
+                    .unwrap()
+                })
+        };
+        assert_eq!(run(1), run(3));
     }
 
     #[test]

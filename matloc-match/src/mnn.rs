@@ -218,45 +218,83 @@ pub fn prepare_rows(
     side: Side,
 ) -> Result<Vec<f32>, MatchError> {
     let ds = selection.len();
+    // Rows are independent: fixed blocks in parallel, in order (the first bad row is reported).
+    let blocks: Vec<Result<Vec<f32>, MatchError>> = rows
+        .par_chunks(PREPARE_BLOCK)
+        .map(|block| {
+            let mut out = Vec::with_capacity(block.len() * ds);
+            for &i in block {
+                prepare_row(
+                    data,
+                    dims,
+                    i,
+                    selection,
+                    stats,
+                    l2_normalise,
+                    side,
+                    &mut out,
+                )?;
+            }
+            Ok(out)
+        })
+        .collect();
     let mut out = Vec::with_capacity(rows.len() * ds);
-    for &i in rows {
-        let row = data.get(i * dims..(i + 1) * dims).ok_or_else(|| {
-            MatchError::Shape(format!("row {i} out of range for {side} features"))
-        })?;
-        if let Some(dim) = row.iter().position(|v| !v.is_finite()) {
-            return Err(MatchError::NonFinite {
-                side,
-                index: i,
-                dim,
-            });
-        }
-        let start = out.len();
-        for &d in selection {
-            let mut v = row[d];
-            if let Some(s) = stats {
-                // A constant dim carries no information: map it to 0 instead of dividing by 0.
-                v = if s.std[d] > 1e-12 {
-                    (v - s.mean[d]) / s.std[d]
-                } else {
-                    0.0
-                };
-            }
-            out.push(v);
-        }
-        if l2_normalise {
-            let v = &mut out[start..];
-            let norm = v
-                .iter()
-                .map(|x| (*x as f64) * (*x as f64))
-                .sum::<f64>()
-                .sqrt();
-            if norm > 0.0 {
-                let inv = (1.0 / norm) as f32;
-                v.iter_mut().for_each(|x| *x *= inv);
-            }
-        }
+    for b in blocks {
+        out.extend_from_slice(&b?);
     }
     Ok(out)
+}
+
+/// Rows per parallel block of [`prepare_rows`].
+const PREPARE_BLOCK: usize = 512;
+
+/// Appends row `i` of `data`, prepared, to `out`.
+fn prepare_row(
+    data: &[f32],
+    dims: usize,
+    i: usize,
+    selection: &[usize],
+    stats: Option<&FeatureStats>,
+    l2_normalise: bool,
+    side: Side,
+    out: &mut Vec<f32>,
+) -> Result<(), MatchError> {
+    let row = data
+        .get(i * dims..(i + 1) * dims)
+        .ok_or_else(|| MatchError::Shape(format!("row {i} out of range for {side} features")))?;
+    if let Some(dim) = row.iter().position(|v| !v.is_finite()) {
+        return Err(MatchError::NonFinite {
+            side,
+            index: i,
+            dim,
+        });
+    }
+    let start = out.len();
+    for &d in selection {
+        let mut v = row[d];
+        if let Some(s) = stats {
+            // A constant dim carries no information: map it to 0 instead of dividing by 0.
+            v = if s.std[d] > 1e-12 {
+                (v - s.mean[d]) / s.std[d]
+            } else {
+                0.0
+            };
+        }
+        out.push(v);
+    }
+    if l2_normalise {
+        let v = &mut out[start..];
+        let norm = v
+            .iter()
+            .map(|x| (*x as f64) * (*x as f64))
+            .sum::<f64>()
+            .sqrt();
+        if norm > 0.0 {
+            let inv = (1.0 / norm) as f32;
+            v.iter_mut().for_each(|x| *x *= inv);
+        }
+    }
+    Ok(())
 }
 
 /// Nearest-neighbour tables of prepared (already normalised) matrices with the chosen kernel.

@@ -332,6 +332,26 @@ fn typed_errors() {
 }
 
 /// A smooth 24-d field over the plane (periods 6–24 cells, distinct directions).
+/// Rows are prepared in parallel blocks; the error must still name the first bad row.
+#[test]
+fn first_non_finite_row_is_reported_across_blocks() {
+    let mm = MnnMatcher::default();
+    let (w, h, d) = (50, 40, 3);
+    let mut qdata = vec![0.5; w * h * d];
+    qdata[1500 * d + 2] = f32::NAN;
+    qdata[700 * d + 1] = f32::INFINITY;
+    let q = query_from(w, h, d, qdata, 1.0);
+    let map = RenderedPoints::all_valid(d, vec![0.5; 2 * d], vec![[0.0; 3]; 2]).unwrap();
+    assert_eq!(
+        mm.match_features(&q, &map, None),
+        Err(MatchError::NonFinite {
+            side: Side::Query,
+            index: 700,
+            dim: 1
+        })
+    );
+}
+
 fn smooth_field(x: f64, y: f64) -> Vec<f32> {
     (0..24)
         .map(|k| {

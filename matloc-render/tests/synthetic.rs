@@ -192,6 +192,26 @@ fn training_lowers_loss_and_recovers_depth() {
         }
         assert_eq!(part.depth[i], full.depth[i]);
     }
+    // Rays are independent: one thread and small tiles give the same render bit for bit.
+    let serial = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| {
+            render_rays(
+                &trainer.field,
+                &test_rays,
+                trainer.grid.as_ref(),
+                &RenderOptions {
+                    march: trainer.config.march,
+                    dims: all.clone(),
+                    tile_rays: 40,
+                    ..RenderOptions::default()
+                },
+            )
+        })
+        .unwrap();
+    assert_eq!(serial, full);
     let single = render_rays_single_pass(
         &trainer.field,
         &test_rays,
