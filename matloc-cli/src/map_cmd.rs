@@ -8,7 +8,9 @@ use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
 use matloc_pipeline::MapDir;
 use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
-use matloc_pipeline::stages::{SelectionRecord, required_stages, selection_file};
+use matloc_pipeline::stages::{
+    CONFIDENCE_FILE, CalibrationRecord, SelectionRecord, required_stages, selection_file,
+};
 
 use crate::progress;
 
@@ -124,6 +126,16 @@ fn info(root: &Path, json: bool) -> Result<()> {
     let selections: Vec<Option<SelectionRecord>> = (0..m.blocks.len())
         .map(|b| map.read_json(&selection_file(b)).ok())
         .collect();
+    let calibration: Option<CalibrationRecord> = map.read_json(CONFIDENCE_FILE).ok();
+    let calibration_summary = calibration.as_ref().map(|c| {
+        serde_json::json!({
+            "model": c.model,
+            "attempts": c.samples.len(),
+            "correct": c.samples.iter().filter(|s| s.1).count(),
+            "accuracy": c.accuracy,
+            "max_accept_rotation_deg": c.max_accept_rotation_deg,
+        })
+    });
     if json {
         let doc = serde_json::json!({
             "map": root.display().to_string(),
@@ -132,6 +144,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
             "scene": m.scene,
             "blocks": m.blocks,
             "selections": selections,
+            "calibration": calibration_summary,
             "stages": m.stages,
             "missing_stages": missing,
             "files": m.files.len(),
@@ -188,6 +201,18 @@ fn info(root: &Path, json: bool) -> Result<()> {
             ext[2],
             bytes as f64 / 1e6,
             e.selected_dims
+        );
+    }
+    if let Some(c) = &calibration {
+        println!(
+            "  calibration  {} attempts ({} correct), rule accuracy {:.0} %, accept threshold {}, \
+             accepted poses within {} of their coarse attitude",
+            c.samples.len(),
+            c.samples.iter().filter(|s| s.1).count(),
+            100.0 * c.accuracy,
+            c.model.accept_threshold,
+            c.max_accept_rotation_deg
+                .map_or("the configured bound".to_string(), |d| format!("{d:.1}°"))
         );
     }
     println!("  stages:");

@@ -142,6 +142,13 @@ pub struct LocalizeOptions {
     /// 212 inliers), and 11–14 of ~50 wrong ones are below it: the test is a floor under the
     /// calibrated confidence, not a replacement.
     pub max_log10_nfa: f64,
+    /// A pass whose pose is rotated more than this from its hypothesis' coarse pose
+    /// (degrees) scores 0, but still seeds the next pass (a first pass from a coarse pose
+    /// metres off can be tilted wrongly and still lead the second to the right pose). Maps
+    /// set it by calibration ([`crate::stages::CalibrationConfig::rotation_bound_margin`]):
+    /// wrong poses that PnP and the confidence accept slide along the near-nadir
+    /// tilt/shift ambiguity, away from the coarse attitude. Default 180 (off).
+    pub max_accept_rotation_deg: f64,
 }
 
 impl Default for LocalizeOptions {
@@ -163,6 +170,7 @@ impl Default for LocalizeOptions {
             render_steps: 128,
             min_place_score: 0.01,
             max_log10_nfa: 0.0,
+            max_accept_rotation_deg: 180.0,
         }
     }
 }
@@ -471,7 +479,10 @@ impl Localizer<'_> {
                 };
                 // A consensus chance could produce scores 0, but its pose still seeds the next
                 // pass: from a coarse pose metres off, the first render gives few matches.
-                let c = if pass.log10_nfa <= self.options.max_log10_nfa {
+                let c = if pass.log10_nfa <= self.options.max_log10_nfa
+                    && rotation_error_deg(&new_pose, &hyp.cam_from_world)
+                        <= self.options.max_accept_rotation_deg
+                {
                     self.options.confidence.confidence(&pass.evidence)
                 } else {
                     0.0

@@ -226,6 +226,15 @@ pub struct CalibrationConfig {
     pub correct_rotation_deg: f64,
     /// Refusal threshold on the calibrated probability.
     pub accept_threshold: f64,
+    /// The localizer accepts a pose only within this many times the largest rotation
+    /// correction (pose vs coarse pose) of a correct calibration attempt
+    /// ([`LocalizeOptions::max_accept_rotation_deg`]; 0 = no calibrated bound). Wrong poses
+    /// that PnP and the confidence accept slide along the near-nadir tilt/shift ambiguity,
+    /// away from the coarse attitude: on three `small` maps every correct pose was ≤ 4.7°
+    /// from its coarse pose, the two false accepts 9.1° and 15.9°.
+    pub rotation_bound_margin: f64,
+    /// Lower limit of the calibrated rotation bound, degrees.
+    pub min_rotation_bound_deg: f64,
 }
 
 impl Default for CalibrationConfig {
@@ -237,6 +246,8 @@ impl Default for CalibrationConfig {
             correct_translation_m: 5.0,
             correct_rotation_deg: 10.0,
             accept_threshold: 0.5,
+            rotation_bound_margin: 2.5,
+            min_rotation_bound_deg: 6.0,
         }
     }
 }
@@ -250,6 +261,14 @@ pub struct CalibrationRecord {
     pub samples: Vec<(Evidence, bool, f64, f64)>,
     /// Fraction of samples the fitted rule classifies correctly.
     pub accuracy: f64,
+    /// Per sample: rotation between its pose and its hypothesis' coarse pose, degrees (1e9 =
+    /// no pose). Empty in maps calibrated before it was recorded.
+    #[serde(default)]
+    pub corrections_deg: Vec<f64>,
+    /// Calibrated bound on an accepted pose's rotation from its coarse pose (see
+    /// [`CalibrationConfig::rotation_bound_margin`]); `None`: the configured one applies.
+    #[serde(default)]
+    pub max_accept_rotation_deg: Option<f64>,
 }
 
 /// Name of the place model directory inside the map.
@@ -746,6 +765,7 @@ pub(crate) fn run_after_nerf(
             config.place.configure(&mut place);
             let solver = LoRansacPnp::default();
             let mut samples = Vec::new();
+            let mut corrections = Vec::new();
             for (done, v) in held.iter().enumerate() {
                 let (image, camera) = load_image(dataset, v.index)?;
                 let hyps = place
@@ -756,6 +776,7 @@ pub(crate) fn run_after_nerf(
                     )
                     .map_err(|e| PipelineError::Place(e.to_string()))?;
                 for h in hyps {
+                    let h_coarse = h.cam_from_world;
                     let fixed = FixedPlace(vec![h]);
                     let options = LocalizeOptions {
                         top_k: 1,
@@ -790,6 +811,11 @@ pub(crate) fn run_after_nerf(
                     let ok = te <= config.calibration.correct_translation_m
                         && re <= config.calibration.correct_rotation_deg;
                     samples.push((evidence, ok, te, re));
+                    corrections.push(
+                        out.cam_from_world
+                            .as_ref()
+                            .map_or(f64::INFINITY, |p| rotation_error_deg(p, &h_coarse)),
+                    );
                 }
                 progress(&BuildEvent::StageProgress {
                     done: done as u64 + 1,
@@ -808,6 +834,15 @@ pub(crate) fn run_after_nerf(
                 .filter(|(e, ok)| model.accept(e) == *ok)
                 .count();
             let accuracy = right as f64 / labelled.len().max(1) as f64;
+            let max_accept_rotation_deg = rotation_bound(
+                samples
+                    .iter()
+                    .zip(&corrections)
+                    .filter(|(s, _)| s.1)
+                    .map(|(_, c)| *c),
+                &config.calibration,
+                config.localize.max_accept_rotation_deg,
+            );
             // Infinite errors are not valid JSON numbers: store them as a large sentinel.
             let samples = samples
                 .into_iter()
@@ -819,12 +854,35 @@ pub(crate) fn run_after_nerf(
                     model,
                     samples,
                     accuracy,
+                    corrections_deg: corrections.iter().map(|c| c.min(1e9)).collect(),
+                    max_accept_rotation_deg,
                 },
             )?;
             Ok(())
         },
     )?;
     Ok(())
+}
+
+/// The calibrated rotation-correction bound: `margin ×` the largest correction of a correct
+/// attempt, within `[min_rotation_bound_deg, configured]`; `None` when the margin is 0 or no
+/// attempt was correct (the configured bound applies).
+pub fn rotation_bound(
+    correct_corrections_deg: impl Iterator<Item = f64>,
+    config: &CalibrationConfig,
+    configured_deg: f64,
+) -> Option<f64> {
+    if config.rotation_bound_margin <= 0.0 {
+        return None;
+    }
+    let largest = correct_corrections_deg
+        .filter(|c| c.is_finite())
+        .fold(None, |m: Option<f64>, c| Some(m.map_or(c, |m| m.max(c))))?;
+    Some(
+        (config.rotation_bound_margin * largest)
+            .max(config.min_rotation_bound_deg)
+            .min(configured_deg),
+    )
 }
 
 /// Lists every file under `dir` (relative to the map root) in the manifest.
@@ -966,6 +1024,9 @@ pub struct LoadedMap {
     pub place: PlaceModel,
     /// Calibrated confidence.
     pub confidence: ConfidenceModel,
+    /// Calibrated bound on an accepted pose's rotation from its coarse pose (`None`: the
+    /// configured one).
+    pub max_accept_rotation_deg: Option<f64>,
 }
 
 /// Stages a complete map has.
@@ -1012,13 +1073,18 @@ impl LoadedMap {
             blocks,
             place,
             confidence: record.model,
+            max_accept_rotation_deg: record.max_accept_rotation_deg,
         })
     }
 
     /// Localizer options: the stored ones with the calibrated confidence.
     pub fn options(&self) -> LocalizeOptions {
+        let configured = self.config.localize.max_accept_rotation_deg;
         LocalizeOptions {
             confidence: self.confidence.clone(),
+            max_accept_rotation_deg: self
+                .max_accept_rotation_deg
+                .map_or(configured, |b| b.min(configured)),
             ..self.config.localize.clone()
         }
     }
@@ -1038,6 +1104,25 @@ impl LoadedMap {
 mod tests {
     use super::*;
     use matloc_render::ModelConfig;
+
+    #[test]
+    fn rotation_bound_scales_the_largest_correct_correction_within_limits() {
+        let cfg = CalibrationConfig::default();
+        let b = |c: &[f64], cfg: &CalibrationConfig| rotation_bound(c.iter().copied(), cfg, 45.0);
+        // 2.5 × 4° = 10°; non-finite corrections (no pose) are ignored.
+        assert_eq!(b(&[1.0, 4.0, f64::INFINITY, 2.0], &cfg), Some(10.0));
+        // Never below the floor, never above the configured bound.
+        assert_eq!(b(&[0.5], &cfg), Some(cfg.min_rotation_bound_deg));
+        assert_eq!(b(&[30.0], &cfg), Some(45.0));
+        // No correct attempt, or the bound turned off: the configured bound applies.
+        assert_eq!(b(&[], &cfg), None);
+        assert_eq!(b(&[f64::INFINITY], &cfg), None);
+        let off = CalibrationConfig {
+            rotation_bound_margin: 0.0,
+            ..cfg
+        };
+        assert_eq!(b(&[4.0], &off), None);
+    }
 
     #[test]
     fn render_steps_replace_only_the_march_grid() {

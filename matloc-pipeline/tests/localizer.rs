@@ -283,6 +283,36 @@ fn a_chance_consensus_is_refused_whatever_the_confidence_model_says() {
 }
 
 #[test]
+fn a_pose_rotated_beyond_the_accept_bound_from_its_coarse_pose_is_refused() {
+    let s = scene();
+    // The right place, but a coarse attitude 8° off: the pose lands on the truth, 8° from it.
+    let coarse = perturbed(&s.query_pose, 1.0, 8.0);
+    let bounded = |deg: f64| {
+        run(
+            &s,
+            vec![hyp(0, coarse, 0)],
+            false,
+            LocalizeOptions {
+                max_accept_rotation_deg: deg,
+                ..LocalizeOptions::default()
+            },
+        )
+    };
+    let loose = bounded(180.0);
+    let pose = loose.cam_from_world.expect("localized without the bound");
+    let turned = rotation_error_deg(&pose, &coarse);
+    assert!(
+        turned > 6.0,
+        "the pose turned only {turned:.2}° from its coarse pose"
+    );
+    let tight = bounded(6.0);
+    assert!(tight.cam_from_world.is_none(), "{:?}", tight.hypotheses);
+    // The bounded passes still ran (the bound scores a pass 0, it does not stop it).
+    assert_eq!(tight.hypotheses[0].passes, loose.hypotheses[0].passes);
+    assert!(bounded(turned + 1.0).cam_from_world.is_some());
+}
+
+#[test]
 fn wrong_image_size_is_a_typed_error() {
     let s = scene();
     let dims: Vec<usize> = (0..8).collect();
