@@ -161,28 +161,23 @@ fn training_lowers_loss_and_recovers_depth() {
     // with the single-pass one (early termination only drops negligible weight).
     let all: Vec<usize> = (0..FEATURE_DIM).collect();
     let sub = vec![45usize, 2, 33, 17];
-    let full = render_rays(
-        &trainer.field,
-        &test_rays,
-        trainer.grid.as_ref(),
-        &RenderOptions {
-            march: trainer.config.march,
-            dims: all.clone(),
-            ..RenderOptions::default()
-        },
-    )
-    .unwrap();
-    let part = render_rays(
-        &trainer.field,
-        &test_rays,
-        trainer.grid.as_ref(),
-        &RenderOptions {
-            march: trainer.config.march,
-            dims: sub.clone(),
-            ..RenderOptions::default()
-        },
-    )
-    .unwrap();
+    let render = |dims: &[usize], tile_rays: usize| {
+        render_rays(
+            &trainer.field,
+            &test_rays,
+            trainer.grid.as_ref(),
+            &RenderOptions {
+                march: trainer.config.march,
+                dims: dims.to_vec(),
+                tile_rays,
+                ..RenderOptions::default()
+            },
+        )
+        .unwrap()
+    };
+    let default_tile = RenderOptions::default().tile_rays;
+    let full = render(&all, default_tile);
+    let part = render(&sub, default_tile);
     for i in 0..test_rays.len() {
         for (j, &d) in sub.iter().enumerate() {
             assert_eq!(
@@ -197,20 +192,7 @@ fn training_lowers_loss_and_recovers_depth() {
         .num_threads(1)
         .build()
         .unwrap()
-        .install(|| {
-            render_rays(
-                &trainer.field,
-                &test_rays,
-                trainer.grid.as_ref(),
-                &RenderOptions {
-                    march: trainer.config.march,
-                    dims: all.clone(),
-                    tile_rays: 40,
-                    ..RenderOptions::default()
-                },
-            )
-        })
-        .unwrap();
+        .install(|| render(&all, 40));
     assert_eq!(serial, full);
     let single = render_rays_single_pass(
         &trainer.field,
