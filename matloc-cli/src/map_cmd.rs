@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
-use indicatif::ProgressBar;
+use indicatif::{MultiProgress, ProgressBar};
 use matloc_pipeline::MapDir;
 use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
 use matloc_pipeline::stages::{
@@ -76,16 +76,29 @@ pub fn build(data: &Path, out: &Path, config: &MapConfig, quiet: bool) -> Result
     let dataset = matloc_data::read_dataset(data)
         .with_context(|| format!("reading dataset {}", data.display()))?;
     let t0 = Instant::now();
-    let mut bar: Option<ProgressBar> = None;
+    // Bars of the running stages (several while sub-NeRF blocks train side by side), by name;
+    // `StageProgress` goes to the one started last.
+    let bars = MultiProgress::new();
+    let mut running: Vec<(String, ProgressBar)> = Vec::new();
     let mut on_event = |e: &BuildEvent| match e {
         BuildEvent::StageStarted { name, total } => {
-            let b = progress::bar(*total, name, quiet);
-            bar = Some(b);
+            let b = bars.add(progress::bar(*total, name, quiet));
+            running.push((name.clone(), b));
         }
         BuildEvent::StageProgress { done, message } => {
-            if let Some(b) = &bar {
+            if let Some((_, b)) = running.last() {
                 b.set_position(*done);
                 b.set_message(message.clone());
+            }
+        }
+        BuildEvent::StageProgressOf {
+            name,
+            done,
+            message,
+        } => {
+            if let Some((_, b)) = running.iter().find(|(n, _)| n == name) {
+                b.set_position(*done);
+                b.set_message(format!("{name} {message}"));
             }
         }
         BuildEvent::StageFinished {
@@ -93,14 +106,18 @@ pub fn build(data: &Path, out: &Path, config: &MapConfig, quiet: bool) -> Result
             seconds,
             skipped,
         } => {
-            if let Some(b) = bar.take() {
+            if let Some(i) = running.iter().position(|(n, _)| n == name) {
+                let (_, b) = running.remove(i);
                 b.finish_and_clear();
+                bars.remove(&b);
             }
-            if *skipped {
-                println!("{name:<14} done earlier");
+            let line = if *skipped {
+                format!("{name:<14} done earlier")
             } else {
-                println!("{name:<14} {seconds:>8.1} s");
-            }
+                format!("{name:<14} {seconds:>8.1} s")
+            };
+            // Printed with the live bars out of the way, not through them.
+            bars.suspend(|| println!("{line}"));
         }
     };
     let map = build_map(&dataset, out, config, &mut on_event)

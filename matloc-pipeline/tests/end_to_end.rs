@@ -146,8 +146,9 @@ fn tiny_map_is_built_resumed_and_localizes() {
          perfect encoder {oracle_ok} within 1 m / 2 deg, errors {oracle_t:?}",
         tests.len()
     );
-    // Measured 2026-12-02 (session 11): 10 of 10 within 0.04–0.66 m, median 0.12 m (session
-    // 8: 10 of 10 within 0.03–0.53 m).
+    // Measured 2026-12-02 (session 11, two builds; training is not bit-reproducible across
+    // runs): 10 of 10 within 0.04–0.66 m and 0.06–0.59 m, medians 0.12 and 0.30 m (session 8:
+    // 10 of 10 within 0.03–0.53 m). The median bound is twice the worse of the two.
     assert!(
         oracle_ok >= 3,
         "perfect-encoder run: only {oracle_ok} of 10 localized"
@@ -155,7 +156,7 @@ fn tiny_map_is_built_resumed_and_localizes() {
     oracle_t.sort_by(f64::total_cmp);
     let median = 0.5 * (oracle_t[oracle_t.len() / 2 - 1] + oracle_t[oracle_t.len() / 2]);
     assert!(
-        median <= 0.5,
+        median <= 0.6,
         "perfect-encoder run: median translation error {median:.3} m (refusals count as ∞)"
     );
     // The learned encoder is at the edge of working on this CI-sized map (measured
