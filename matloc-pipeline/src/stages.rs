@@ -226,8 +226,8 @@ pub struct CalibrationConfig {
     pub correct_rotation_deg: f64,
     /// Refusal threshold on the calibrated probability.
     pub accept_threshold: f64,
-    /// The localizer accepts a pose only within this many times the largest rotation
-    /// correction (pose vs coarse pose) of a correct calibration attempt
+    /// The localizer accepts a pose only within this many times the 90th percentile of the
+    /// rotation corrections (pose vs coarse pose) of correct calibration attempts
     /// ([`LocalizeOptions::max_accept_rotation_deg`]; 0 = no calibrated bound). Wrong poses
     /// that PnP and the confidence accept slide along the near-nadir tilt/shift ambiguity,
     /// away from the coarse attitude: on three `small` maps every correct pose was ≤ 4.7°
@@ -864,9 +864,11 @@ pub(crate) fn run_after_nerf(
     Ok(())
 }
 
-/// The calibrated rotation-correction bound: `margin ×` the largest correction of a correct
-/// attempt, within `[min_rotation_bound_deg, configured]`; `None` when the margin is 0 or no
-/// attempt was correct (the configured bound applies).
+/// The calibrated rotation-correction bound: `margin ×` the 90th percentile of the corrections
+/// of correct attempts, within `[min_rotation_bound_deg, configured]`; `None` when the margin
+/// is 0 or no attempt was correct (the configured bound applies). A percentile, not the
+/// largest: one correct attempt turned 4.1° on a map whose others stayed ≤ 2.1°, and the bound
+/// it gave (10.2°) let through a wrong pose that had turned 8.2°.
 pub fn rotation_bound(
     correct_corrections_deg: impl Iterator<Item = f64>,
     config: &CalibrationConfig,
@@ -875,11 +877,14 @@ pub fn rotation_bound(
     if config.rotation_bound_margin <= 0.0 {
         return None;
     }
-    let largest = correct_corrections_deg
-        .filter(|c| c.is_finite())
-        .fold(None, |m: Option<f64>, c| Some(m.map_or(c, |m| m.max(c))))?;
+    let mut c: Vec<f64> = correct_corrections_deg.filter(|c| c.is_finite()).collect();
+    if c.is_empty() {
+        return None;
+    }
+    c.sort_by(f64::total_cmp);
+    let p90 = c[((c.len() - 1) as f64 * 0.9).round() as usize];
     Some(
-        (config.rotation_bound_margin * largest)
+        (config.rotation_bound_margin * p90)
             .max(config.min_rotation_bound_deg)
             .min(configured_deg),
     )
@@ -1106,11 +1111,18 @@ mod tests {
     use matloc_render::ModelConfig;
 
     #[test]
-    fn rotation_bound_scales_the_largest_correct_correction_within_limits() {
+    fn rotation_bound_scales_the_p90_correct_correction_within_limits() {
         let cfg = CalibrationConfig::default();
         let b = |c: &[f64], cfg: &CalibrationConfig| rotation_bound(c.iter().copied(), cfg, 45.0);
-        // 2.5 × 4° = 10°; non-finite corrections (no pose) are ignored.
-        assert_eq!(b(&[1.0, 4.0, f64::INFINITY, 2.0], &cfg), Some(10.0));
+        // 2.5 × the 90th percentile (4° among these); non-finite corrections (no pose) are
+        // ignored.
+        let mut c: Vec<f64> = (1..=10).map(|i| i as f64 * 0.4).collect();
+        c.push(f64::INFINITY);
+        assert_eq!(b(&c, &cfg), Some(2.5 * 3.6));
+        // One outlier among many does not move it.
+        let mut outlier = vec![2.0; 19];
+        outlier.push(9.0);
+        assert_eq!(b(&outlier, &cfg), Some(6.0));
         // Never below the floor, never above the configured bound.
         assert_eq!(b(&[0.5], &cfg), Some(cfg.min_rotation_bound_deg));
         assert_eq!(b(&[30.0], &cfg), Some(45.0));
