@@ -284,7 +284,8 @@ pub fn build_map(
         }
     }
     let threads = rayon::current_num_threads();
-    for group in pending.chunks(config.nerf.parallel_blocks.max(1)) {
+    // No more blocks at once than threads: each gets at least one of its own.
+    for group in pending.chunks(config.nerf.parallel_blocks.clamp(1, threads.max(1))) {
         train_blocks(
             dataset, &partition, &mut map, config, group, threads, progress,
         )?;

@@ -25,16 +25,23 @@ fn two_blocks_train_side_by_side_and_resume() {
         "train": {"batch_rays": 256, "march": {"steps": 64, "max_samples": 16},
                   "occupancy_warmup_steps": 4},
     });
-    // Stop the build once both NeRF stages are done (at the next stage's start).
+    // Stop the build once both NeRF stages are done (at the next stage's start). Two threads
+    // whatever the machine has, so the two blocks get one each.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
     let mut events = Vec::new();
     let stopped = catch_unwind(AssertUnwindSafe(|| {
-        build_map(&dataset, &out, &config, &mut |e| {
-            events.push(e.clone());
-            if let BuildEvent::StageStarted { name, .. } = e
-                && name.starts_with("pairs")
-            {
-                panic!("stop after the NeRF stages");
-            }
+        pool.install(|| {
+            build_map(&dataset, &out, &config, &mut |e| {
+                events.push(e.clone());
+                if let BuildEvent::StageStarted { name, .. } = e
+                    && name.starts_with("pairs")
+                {
+                    panic!("stop after the NeRF stages");
+                }
+            })
         })
     }));
     assert!(stopped.is_err());
