@@ -425,18 +425,5 @@ fn finish_block(map: &mut MapDir, b: usize, dir: &Path) -> Result<(), PipelineEr
         })?;
     }
     // The trainer wrote its files atomically; list them (checksums) in the manifest.
-    for entry in std::fs::read_dir(dir).map_err(|e| PipelineError::Io {
-        path: dir.to_path_buf(),
-        source: e,
-    })? {
-        let entry = entry.map_err(|e| PipelineError::Io {
-            path: dir.to_path_buf(),
-            source: e,
-        })?;
-        let file = entry.file_name().to_string_lossy().to_string();
-        if entry.path().is_file() && !file.ends_with(".tmp") {
-            map.register_file(&format!("{}/{file}", block_dir(b)))?;
-        }
-    }
-    Ok(())
+    crate::stages::register_dir(map, &block_dir(b))
 }

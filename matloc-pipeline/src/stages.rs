@@ -891,7 +891,7 @@ pub fn rotation_bound(
 }
 
 /// Lists every file under `dir` (relative to the map root) in the manifest.
-fn register_dir(map: &mut MapDir, dir: &str) -> Result<(), PipelineError> {
+pub(crate) fn register_dir(map: &mut MapDir, dir: &str) -> Result<(), PipelineError> {
     let path = map.path_of(dir)?;
     let entries = std::fs::read_dir(&path).map_err(|e| PipelineError::Io {
         path: path.clone(),
