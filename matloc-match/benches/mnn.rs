@@ -49,38 +49,41 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-/// The whole matcher on an 80 × 60 query against an 80 × 60 render at 47 dims: global MNN vs
-/// the image-space window the localizer uses (0.2 × 320 px = 64 px).
+/// The whole matcher on an 80 × 60 query against an 80 × 60 render at 47 and 5 dims (all
+/// dims, and the paper's N_s = 5): global MNN vs the image-space window the localizer uses
+/// (0.2 × 320 px = 64 px).
 fn bench_window(c: &mut Criterion) {
-    let (cols, rows, d) = (80usize, 60usize, 47usize);
-    let mut rng = ChaCha8Rng::seed_from_u64(11);
-    let q = unit_rows(&mut rng, cols * rows, d);
-    let m = unit_rows(&mut rng, cols * rows, d);
-    let query = QueryFeatures::new(FeatureMap::from_vec(cols, rows, d, q).unwrap(), 4.0);
-    let points: Vec<[f64; 3]> = (0..cols * rows).map(|i| [i as f64, 0.0, 1.0]).collect();
-    let map = RenderedPoints::all_valid(d, m, points)
-        .unwrap()
-        .with_grid(cols, rows)
-        .unwrap()
-        .with_pixel_grid(QueryGrid::with_stride(4.0))
-        .unwrap();
-    let mut g = c.benchmark_group("mnn_matcher_80x60_d47");
-    g.sample_size(10);
-    for (name, window_px) in [
-        ("global", None),
-        ("window_16px", Some(16.0)),
-        ("window_32px", Some(32.0)),
-        ("window_64px", Some(64.0)),
-    ] {
-        let matcher = MnnMatcher::new(MnnConfig {
-            window_px,
-            ..Default::default()
-        });
-        g.bench_function(name, |bch| {
-            bch.iter(|| black_box(matcher.match_features(&query, &map, None).unwrap()))
-        });
+    let (cols, rows) = (80usize, 60usize);
+    for d in [47usize, 5] {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let q = unit_rows(&mut rng, cols * rows, d);
+        let m = unit_rows(&mut rng, cols * rows, d);
+        let query = QueryFeatures::new(FeatureMap::from_vec(cols, rows, d, q).unwrap(), 4.0);
+        let points: Vec<[f64; 3]> = (0..cols * rows).map(|i| [i as f64, 0.0, 1.0]).collect();
+        let map = RenderedPoints::all_valid(d, m, points)
+            .unwrap()
+            .with_grid(cols, rows)
+            .unwrap()
+            .with_pixel_grid(QueryGrid::with_stride(4.0))
+            .unwrap();
+        let mut g = c.benchmark_group(format!("mnn_matcher_80x60_d{d}"));
+        g.sample_size(10);
+        for (name, window_px) in [
+            ("global", None),
+            ("window_16px", Some(16.0)),
+            ("window_32px", Some(32.0)),
+            ("window_64px", Some(64.0)),
+        ] {
+            let matcher = MnnMatcher::new(MnnConfig {
+                window_px,
+                ..Default::default()
+            });
+            g.bench_function(name, |bch| {
+                bch.iter(|| black_box(matcher.match_features(&query, &map, None).unwrap()))
+            });
+        }
+        g.finish();
     }
-    g.finish();
 }
 
 criterion_group!(benches, bench, bench_window);

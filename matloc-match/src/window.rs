@@ -58,39 +58,39 @@ impl Side<'_> {
 }
 
 /// The run of columns of map grid row `row` whose cell centres lie within `radius_px` of `p`
-/// (a disc meets a row of cells in one run), by the same f64 test as the all-pairs
-/// definition: an analytic guess, then exact steps at both ends.
-fn row_run(b: &Side<'_>, p: [f64; 2], radius_px: f64, row: usize) -> Option<(usize, usize)> {
+/// (a disc meets a row of cells in one run), by the same f64 test as the all-pairs definition.
+///
+/// `state` carries the run's ends between calls: for centres `p` of one pixel row visited in
+/// increasing `x`, both ends only move right, so each call costs a few tests instead of a
+/// search. Reset it to `(0, 0)` when `p`'s row changes.
+fn row_run(
+    b: &Side<'_>,
+    p: [f64; 2],
+    radius_px: f64,
+    row: usize,
+    state: &mut (usize, usize),
+) -> Option<(usize, usize)> {
     let r2 = radius_px * radius_px;
     let inside = |col: usize| {
         let q = b.grid.cell_centre(col, row);
         (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) <= r2
     };
-    let (s, off) = (b.grid.stride, b.grid.offset[0]);
     let last = b.cols.checked_sub(1)?;
-    let col_of = |x: f64| ((x - off) / s - 0.5).clamp(0.0, last as f64);
-    // The nearest column, or a neighbour of it when rounding puts the disc's edge between.
-    let near = col_of(p[0]).round() as usize;
-    let seed = [near, near.saturating_sub(1), (near + 1).min(last)]
-        .into_iter()
-        .find(|&c| inside(c))?;
-    let dy = b.grid.cell_centre(seed, row)[1] - p[1];
-    let half = (r2 - dy * dy).max(0.0).sqrt();
-    let mut lo = (col_of(p[0] - half).ceil() as usize).min(seed);
-    while lo > 0 && inside(lo - 1) {
-        lo -= 1;
+    let (lo, hi) = state;
+    // Cells left of `p` and outside the disc stay outside for every later `p`.
+    while *lo <= last && !inside(*lo) && b.grid.cell_centre(*lo, row)[0] < p[0] {
+        *lo += 1;
     }
-    while lo < seed && !inside(lo) {
-        lo += 1;
+    if *lo > last || !inside(*lo) {
+        return None;
     }
-    let mut hi = (col_of(p[0] + half).floor() as usize).max(seed);
-    while hi < last && inside(hi + 1) {
-        hi += 1;
+    // The previous right end lies between the new ends, so it is inside again and the run
+    // only grows from there.
+    *hi = (*hi).max(*lo);
+    while *hi < last && inside(*hi + 1) {
+        *hi += 1;
     }
-    while hi > seed && !inside(hi) {
-        hi -= 1;
-    }
-    Some((lo, hi))
+    Some((*lo, *hi))
 }
 
 /// Candidates scored together: eight consecutive map cells of one grid row, one AVX register.
@@ -227,12 +227,19 @@ pub(crate) fn nn_tables_windowed(
             let mut rows = NnTable::empty(i1 - i0);
             // Column table over grid cells (padded like the map).
             let mut cols = NnTable::empty(stride);
+            // Run ends per map row for the current pixel row of queries (see `row_run`).
+            let mut run_state = vec![(0usize, 0usize); map.rows];
+            let mut state_y = f64::NAN;
             let mut i = i0;
             while i < i1 {
                 // A block of up to QB neighbouring query cells on one pixel row: their windows
                 // cover the same map rows and nearly the same runs, so each map value loaded
                 // feeds QB multiply-adds.
                 let y = query.centre(i)[1];
+                if y != state_y {
+                    run_state.fill((0, 0));
+                    state_y = y;
+                }
                 let mut nq = 1;
                 while nq < QB && i + nq < i1 && query.centre(i + nq)[1] == y {
                     nq += 1;
@@ -261,13 +268,10 @@ pub(crate) fn nn_tables_windowed(
                     )
                 };
                 for r in ra..rb {
-                    let runs: [Option<(usize, usize)>; QB] = std::array::from_fn(|q| {
-                        if q < nq {
-                            row_run(map, ps[q], radius_px, r)
-                        } else {
-                            None
-                        }
-                    });
+                    let mut runs = [None; QB];
+                    for (q, run) in runs.iter_mut().enumerate().take(nq) {
+                        *run = row_run(map, ps[q], radius_px, r, &mut run_state[r]);
+                    }
                     let Some(lo) = runs.iter().flatten().map(|x| x.0).min() else {
                         continue;
                     };

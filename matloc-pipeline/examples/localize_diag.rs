@@ -113,6 +113,7 @@ fn main() {
                     encoder: if b == hb { &oracle } else { &blk.encoder },
                     matcher: &blk.matcher,
                     dims: blk.dims.clone(),
+                    match_dims: blk.match_dims.clone(),
                 })
                 .collect(),
             solver: &solver,

@@ -11,6 +11,8 @@
 //!   poses and map as MatLoc.
 //! - [`confidence`]: calibrated P(correct | inliers, inlier ratio, matches) and the refusal
 //!   rule.
+//! - [`table3`]: the paper's Table 3 (feature sets × matching time, precision, pose error) on
+//!   a built map.
 //! - [`eval`]: per-method accuracy, refusal and timing summaries in the layout of the paper's
 //!   Tables 1 and 2, and their markdown rendering.
 //!
@@ -28,6 +30,7 @@ pub mod localizer;
 pub mod manifest;
 pub mod methods;
 pub mod stages;
+pub mod table3;
 
 pub use error::PipelineError;
 pub use eval::{

@@ -304,14 +304,9 @@ pub struct SelectionRecord {
     pub pairs: usize,
 }
 
-/// Greedy MNN-F1 selection of `n_s` dims for block `b`, on its GT pairs with the block's
-/// encoder features as the query side.
-fn greedy_selection(
-    map: &MapDir,
-    dataset: &Dataset,
-    b: usize,
-    n_s: usize,
-) -> Result<SelectionRecord, PipelineError> {
+/// Block `b`'s GT pairs with its encoder's features at their query cells: what selectors
+/// score dims on (the query side is what the encoder sees, not the NeRF at the true pose).
+pub fn block_pair_set(map: &MapDir, dataset: &Dataset, b: usize) -> Result<PairSet, PipelineError> {
     let gt = GtPairSet::from_bytes(
         &map.read_file(&pairs_file(b))?,
         &map.path_of(&pairs_file(b))?,
@@ -330,8 +325,19 @@ fn greedy_selection(
         maps.push((r.view.index, m));
     }
     let qf = pair_query_features(&gt, &maps)?;
-    let pairs = PairSet::from_gt(&gt, Some(qf))
-        .map_err(|e| PipelineError::Config(format!("selection of block {b}: {e}")))?;
+    PairSet::from_gt(&gt, Some(qf))
+        .map_err(|e| PipelineError::Config(format!("pairs of block {b}: {e}")))
+}
+
+/// Greedy MNN-F1 selection of `n_s` dims for block `b`, on its GT pairs with the block's
+/// encoder features as the query side.
+fn greedy_selection(
+    map: &MapDir,
+    dataset: &Dataset,
+    b: usize,
+    n_s: usize,
+) -> Result<SelectionRecord, PipelineError> {
+    let pairs = block_pair_set(map, dataset, b)?;
     let mut rng = ChaCha8Rng::seed_from_u64(b as u64);
     let sel = MatchingSelector::default()
         .select(&pairs, n_s, &mut rng)
@@ -340,7 +346,7 @@ fn greedy_selection(
         dims: sel.dims,
         selector: "greedy MNN-F1".into(),
         objective: sel.report.objective,
-        pairs: gt.len(),
+        pairs: pairs.len(),
     })
 }
 
@@ -382,7 +388,10 @@ fn spaced<T: Clone>(v: &[T], n: usize) -> Vec<T> {
         .collect()
 }
 
-fn load_image(dataset: &Dataset, index: usize) -> Result<(Image<f32>, Camera), PipelineError> {
+pub(crate) fn load_image(
+    dataset: &Dataset,
+    index: usize,
+) -> Result<(Image<f32>, Camera), PipelineError> {
     let f = &dataset.frames[index];
     matloc_data::images::load_frame_image(dataset, f, 1).map_err(|e| PipelineError::Io {
         path: dataset.image_path(f),
@@ -934,8 +943,38 @@ pub struct MapBlock {
     /// MNN matcher normalising with this block's feature statistics (windowed when
     /// [`LocalizeOptions::window_fraction`] is positive).
     pub matcher: MnnMatcher,
-    /// Selected dims.
+    /// Rendered dims (the matcher's feature space; see [`LocalizerBlock::dims`]).
     pub dims: Vec<usize>,
+    /// Selected dims matched on, when fewer than `dims`.
+    pub match_dims: Option<Vec<usize>>,
+}
+
+/// The MNN matcher of a block for matching on `dims`: the encoder's feature statistics
+/// restricted to them (the matcher sees only those dims), windowed to `window_px`.
+pub fn block_matcher(
+    encoder: &QueryEncoder,
+    dims: &[usize],
+    window_px: Option<f64>,
+) -> Result<MnnMatcher, PipelineError> {
+    let full = encoder.stats();
+    let mut stats = FeatureStats {
+        mean: Vec::with_capacity(dims.len()),
+        std: Vec::with_capacity(dims.len()),
+    };
+    for d in dims {
+        let c = encoder
+            .dims()
+            .iter()
+            .position(|e| e == d)
+            .ok_or(PipelineError::DimsNotEncoded { dim: *d })?;
+        stats.mean.push(full.mean[c]);
+        stats.std.push(full.std[c]);
+    }
+    Ok(MnnMatcher::new(MnnConfig {
+        stats: Some(stats),
+        window_px,
+        ..MnnConfig::default()
+    }))
 }
 
 /// The blocks of a map, loaded.
@@ -960,31 +999,19 @@ impl LoadedBlocks {
             let renderer = load_nerf(map, b, options.render_steps)?;
             let encoder = load_encoder(map, b)?;
             let sel: SelectionRecord = map.read_json(&selection_file(b))?;
-            // The matcher sees only the selected dims: restrict the statistics to them.
-            let full = encoder.stats();
-            let mut stats = FeatureStats {
-                mean: Vec::with_capacity(sel.dims.len()),
-                std: Vec::with_capacity(sel.dims.len()),
-            };
-            for d in &sel.dims {
-                let c = encoder
-                    .dims()
-                    .iter()
-                    .position(|e| e == d)
-                    .ok_or(PipelineError::DimsNotEncoded { dim: *d })?;
-                stats.mean.push(full.mean[c]);
-                stats.std.push(full.std[c]);
-            }
-            let matcher = MnnMatcher::new(MnnConfig {
-                stats: Some(stats),
-                window_px,
-                ..MnnConfig::default()
-            });
+            let (dims, match_dims) =
+                if options.refine_on_all_dims && sel.dims.len() < encoder.dims().len() {
+                    (encoder.dims().to_vec(), Some(sel.dims))
+                } else {
+                    (sel.dims, None)
+                };
+            let matcher = block_matcher(&encoder, &dims, window_px)?;
             blocks.push(MapBlock {
                 renderer,
                 encoder,
                 matcher,
-                dims: sel.dims,
+                dims,
+                match_dims,
             });
         }
         Ok(Self(blocks))
@@ -1007,6 +1034,7 @@ impl LoadedBlocks {
                     encoder: &b.encoder,
                     matcher: &b.matcher,
                     dims: b.dims.clone(),
+                    match_dims: b.match_dims.clone(),
                 })
                 .collect(),
             solver,

@@ -127,6 +127,7 @@ fn tiny_map_is_built_resumed_and_localizes() {
                 encoder: &oracle,
                 matcher: &blk.matcher,
                 dims: blk.dims.clone(),
+                match_dims: blk.match_dims.clone(),
             }],
             solver: &solver,
             options: LocalizeOptions::default(),
@@ -164,6 +165,41 @@ fn tiny_map_is_built_resumed_and_localizes() {
     // everything, see docs/BENCHMARKS.md); what must hold is that the calibrated confidence
     // and the a-contrario floor refuse instead of returning wrong poses.
     assert!(matloc_false <= 1, "{matloc_false} wrong poses returned");
+
+    // The paper's Table 3 on this map: every feature set matches and localizes from
+    // perturbed true poses with the map's own encoder and localizer.
+    let t3cfg = matloc_pipeline::table3::Table3Config {
+        max_queries: 4,
+        ..Default::default()
+    };
+    let t3 = matloc_pipeline::table3::evaluate(&map, &dataset, &t3cfg, &mut |_, _| {}).unwrap();
+    eprint!("{}", matloc_pipeline::table3::markdown(&t3));
+    let names: Vec<&str> = t3.rows.iter().map(|r| r.name.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "all-47",
+            "pos-32",
+            "mlp-15",
+            "greedy N_s=10",
+            "greedy N_s=5",
+            "paper-BIP N_s=10",
+            "random-5"
+        ]
+    );
+    let sizes: Vec<usize> = t3.rows.iter().map(|r| r.dims[0].len()).collect();
+    // The BIP as printed minimises a mean, so it picks a single dim whatever the budget.
+    assert_eq!(sizes, [47, 32, 15, 10, 5, 1, 5]);
+    assert_eq!((t3.queries, t3.starts), (4, 4));
+    assert!(t3.start_t_m <= 3.0 && t3.start_r_deg <= 5.0);
+    let all = &t3.rows[0];
+    assert!(all.match_ms.is_finite() && all.matches > 0.0);
+    assert!(
+        all.localized.t_m < t3.start_t_m,
+        "all dims: {:.2} m after localization from {:.2} m",
+        all.localized.t_m,
+        t3.start_t_m
+    );
 
     // An unrelated image (flat grey) is refused, not given a pose.
     let camera = dataset.split(Split::Test).next().unwrap().camera;

@@ -121,6 +121,7 @@ fn run(
             encoder: &encoder,
             matcher: &matcher,
             dims: dims[..12].to_vec(),
+            match_dims: None,
         }],
         solver: &solver,
         options,
@@ -333,6 +334,7 @@ fn wrong_image_size_is_a_typed_error() {
             encoder: &encoder,
             matcher: &matcher,
             dims: vec![40], // not produced by the encoder
+            match_dims: None,
         }],
         solver: &solver,
         options: LocalizeOptions::default(),
