@@ -977,6 +977,19 @@ pub fn block_matcher(
     }))
 }
 
+impl MapBlock {
+    /// This block as the localizer sees it.
+    pub fn localizer_block(&self) -> LocalizerBlock<'_> {
+        LocalizerBlock {
+            renderer: &self.renderer,
+            encoder: &self.encoder,
+            matcher: &self.matcher,
+            dims: self.dims.clone(),
+            match_dims: self.match_dims.clone(),
+        }
+    }
+}
+
 /// The blocks of a map, loaded.
 pub struct LoadedBlocks(pub Vec<MapBlock>);
 
@@ -1026,17 +1039,7 @@ impl LoadedBlocks {
     ) -> Localizer<'a> {
         Localizer {
             place,
-            blocks: self
-                .0
-                .iter()
-                .map(|b| LocalizerBlock {
-                    renderer: &b.renderer,
-                    encoder: &b.encoder,
-                    matcher: &b.matcher,
-                    dims: b.dims.clone(),
-                    match_dims: b.match_dims.clone(),
-                })
-                .collect(),
+            blocks: self.0.iter().map(MapBlock::localizer_block).collect(),
             solver,
             options,
         }

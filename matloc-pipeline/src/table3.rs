@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use crate::confidence::ConfidenceModel;
 use crate::error::PipelineError;
 use crate::localizer::{LocalizeOptions, Localizer, LocalizerBlock};
-use crate::stages::{FixedPlace, LoadedMap, block_matcher, block_pair_set, load_image};
+use crate::stages::{FixedPlace, LoadedMap, MapBlock, block_matcher, block_pair_set, load_image};
 
 /// Settings of the evaluation.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -348,18 +348,8 @@ pub fn evaluate(
                 for ((options, m, render_dims, match_dims), out) in
                     variants.into_iter().zip(a.runs.iter_mut())
                 {
-                    let mut bl: Vec<LocalizerBlock<'_>> = map
-                        .blocks
-                        .0
-                        .iter()
-                        .map(|b| LocalizerBlock {
-                            renderer: &b.renderer,
-                            encoder: &b.encoder,
-                            matcher: &b.matcher,
-                            dims: b.dims.clone(),
-                            match_dims: b.match_dims.clone(),
-                        })
-                        .collect();
+                    let mut bl: Vec<LocalizerBlock<'_>> =
+                        map.blocks.0.iter().map(MapBlock::localizer_block).collect();
                     bl[q.block] = LocalizerBlock {
                         renderer: &blk.renderer,
                         encoder: &blk.encoder,
