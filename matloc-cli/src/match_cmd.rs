@@ -94,6 +94,10 @@ struct EvalArgs {
     /// The map's dataset (test views are the queries; the GT pairs' images).
     #[arg(long, requires = "map")]
     data: Option<PathBuf>,
+    /// With `--map`: also evaluate this feature set (e.g. `"greedy N_s=5"`) with encoders
+    /// trained on only its dims (one per block, the map's recipe; minutes each). Repeatable.
+    #[arg(long, requires = "map")]
+    own_encoder: Vec<String>,
     /// Where query features come from.
     #[arg(long, value_enum, default_value = "encoder")]
     query: QuerySource,
@@ -264,15 +268,21 @@ fn eval_map(
         },
         starts_per_query: args.starts,
         seed: args.scene.seed,
+        own_encoder_sets: args.own_encoder.clone(),
         ..Default::default()
     };
     let t0 = Instant::now();
-    let bar = progress::bar(0, "starts", quiet);
-    let table =
-        matloc_pipeline::table3::evaluate(&loaded, &dataset, &config, &mut |done, total| {
+    let bar = progress::bar(0, "", quiet);
+    let table = matloc_pipeline::table3::evaluate(
+        &loaded,
+        &dataset,
+        &config,
+        &mut |stage, done, total| {
             bar.set_length(total as u64);
             bar.set_position(done as u64);
-        })?;
+            bar.set_message(stage.to_string());
+        },
+    )?;
     bar.finish_and_clear();
     println!(
         "map {}: {} test queries x {} starts ({} in all), start perturbation uniform ball {} m / {} deg (median start error {:.2} m / {:.2} deg); the map's encoder, matching window and localizer options, every pose kept ({:.0} s)",

@@ -573,6 +573,59 @@ fn pair_query_features(
     Ok(qf)
 }
 
+/// Block `b`'s encoder training views: its training views less the hold-out, evenly spaced
+/// down to the configured count.
+pub fn encoder_views(
+    dataset: &Dataset,
+    partition: &Partition,
+    config: &MapConfig,
+    b: usize,
+) -> Vec<TrainingView> {
+    let (fit, _) = views_of_block(dataset, partition, b, config.calibration.holdout_every);
+    spaced(&fit, config.encoder.views_per_block)
+}
+
+/// Trains block `b`'s query encoder on `views` into the `dims` of its sub-NeRF's features
+/// (targets rendered at the views' true poses; statistics from the rendered surface cells).
+pub fn train_block_encoder(
+    map: &MapDir,
+    dataset: &Dataset,
+    config: &MapConfig,
+    b: usize,
+    views: &[TrainingView],
+    dims: &[usize],
+    progress: &mut dyn FnMut(&matloc_match::encoder::EncoderProgress),
+) -> Result<QueryEncoder, PipelineError> {
+    let renderer = load_nerf(map, b, 0)?;
+    let mut samples = Vec::with_capacity(views.len());
+    let mut rows = Vec::new();
+    let nd = dims.len();
+    for v in views {
+        let (image, _) = load_image(dataset, v.index)?;
+        let target = renderer
+            .render_view(&v.camera, &v.cam_from_world, ENCODER_STRIDE, dims)
+            .map_err(|e| PipelineError::RenderFailure(e.to_string()))?;
+        for i in 0..target.cols * target.rows {
+            if target.has_surface(i, config.encoder.train.min_accumulation) {
+                rows.extend_from_slice(&target.features[i * nd..(i + 1) * nd]);
+            }
+        }
+        samples.push(EncoderSample { image, target });
+    }
+    if rows.is_empty() {
+        return Err(PipelineError::Config(format!(
+            "block {b}: the sub-NeRF renders no surface at its training views"
+        )));
+    }
+    let stats = FeatureStats::from_features(&rows, nd);
+    let cfg = EncoderTrainConfig {
+        seed: config.encoder.train.seed.wrapping_add(b as u64),
+        ..config.encoder.train.clone()
+    };
+    train_encoder(&samples, dims.to_vec(), stats, &cfg, progress)
+        .map_err(|e| PipelineError::Encoder(e.to_string()))
+}
+
 /// The stages after the sub-NeRFs (see the module docs).
 pub(crate) fn run_after_nerf(
     dataset: &Dataset,
@@ -618,7 +671,7 @@ pub(crate) fn run_after_nerf(
         )?;
 
         // Encoder.
-        let enc_views = spaced(&fit, config.encoder.views_per_block);
+        let enc_views = encoder_views(dataset, partition, config, b);
         let steps = config.encoder.train.total_steps() as u64;
         stage(
             map,
@@ -626,39 +679,23 @@ pub(crate) fn run_after_nerf(
             steps,
             progress,
             &mut |map, progress| {
-                let renderer = load_nerf(map, b, 0)?;
-                let mut samples = Vec::with_capacity(enc_views.len());
-                let mut rows = Vec::new();
-                for v in &enc_views {
-                    let (image, _) = load_image(dataset, v.index)?;
-                    let target = renderer
-                        .render_view(&v.camera, &v.cam_from_world, ENCODER_STRIDE, &all_dims)
-                        .map_err(|e| PipelineError::RenderFailure(e.to_string()))?;
-                    let nd = all_dims.len();
-                    for i in 0..target.cols * target.rows {
-                        if target.has_surface(i, config.encoder.train.min_accumulation) {
-                            rows.extend_from_slice(&target.features[i * nd..(i + 1) * nd]);
-                        }
-                    }
-                    samples.push(EncoderSample { image, target });
-                }
-                if rows.is_empty() {
-                    return Err(PipelineError::Config(format!(
-                        "block {b}: the sub-NeRF renders no surface at its training views"
-                    )));
-                }
-                let stats = FeatureStats::from_features(&rows, all_dims.len());
-                let cfg = EncoderTrainConfig {
-                    seed: config.encoder.train.seed.wrapping_add(b as u64),
-                    ..config.encoder.train.clone()
-                };
-                let enc = train_encoder(&samples, all_dims.clone(), stats, &cfg, &mut |p| {
-                    progress(&BuildEvent::StageProgress {
-                        done: p.step as u64,
-                        message: format!("loss {:.3} (mse {:.3}, nce {:.3})", p.loss, p.mse, p.nce),
-                    })
-                })
-                .map_err(|e| PipelineError::Encoder(e.to_string()))?;
+                let enc = train_block_encoder(
+                    map,
+                    dataset,
+                    config,
+                    b,
+                    &enc_views,
+                    &all_dims,
+                    &mut |p| {
+                        progress(&BuildEvent::StageProgress {
+                            done: p.step as u64,
+                            message: format!(
+                                "loss {:.3} (mse {:.3}, nce {:.3})",
+                                p.loss, p.mse, p.nce
+                            ),
+                        })
+                    },
+                )?;
                 let path = map.path_of(&encoder_file(b))?;
                 enc.save(&path)
                     .map_err(|e| PipelineError::Encoder(e.to_string()))?;

@@ -12,6 +12,7 @@
 use matloc_core::metrics::{median, rotation_error_deg, translation_error_m};
 use matloc_core::{Camera, Image, Pose};
 use matloc_data::{Dataset, Split};
+use matloc_match::encoder::QueryEncoder;
 use matloc_match::gt::{PerturbKind, Perturbation};
 use matloc_match::localize::{correct_matches, render_map_points, timed_match};
 use matloc_match::{MatchError, QueryFeatures};
@@ -28,7 +29,10 @@ use serde::{Deserialize, Serialize};
 use crate::confidence::ConfidenceModel;
 use crate::error::PipelineError;
 use crate::localizer::{LocalizeOptions, Localizer, LocalizerBlock};
-use crate::stages::{FixedPlace, LoadedMap, MapBlock, block_matcher, block_pair_set, load_image};
+use crate::stages::{
+    FixedPlace, LoadedMap, MapBlock, block_matcher, block_pair_set, encoder_views, load_image,
+    train_block_encoder,
+};
 
 /// Settings of the evaluation.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -45,6 +49,10 @@ pub struct Table3Config {
     pub precision_px: f64,
     /// Seed of the starts and of the random selection.
     pub seed: u64,
+    /// Feature sets (by name, e.g. `"greedy N_s=5"`) that also get a row with encoders of
+    /// their own: one per block trained on only those dims, the map's encoder recipe and
+    /// views (the paper's encoder projects into the selected features). Minutes per block.
+    pub own_encoder_sets: Vec<String>,
 }
 
 impl Default for Table3Config {
@@ -59,6 +67,7 @@ impl Default for Table3Config {
             max_queries: 0,
             precision_px: 2.0,
             seed: 0,
+            own_encoder_sets: Vec::new(),
         }
     }
 }
@@ -88,8 +97,9 @@ pub struct Table3Row {
     /// options; every pose is kept, refused or not), rendering and refining on the set's dims.
     pub localized: Localized,
     /// The same matching on the set's dims but rendering and refining on all encoded dims
-    /// ([`crate::LocalizeOptions::refine_on_all_dims`]).
-    pub localized_refine_all: Localized,
+    /// ([`crate::LocalizeOptions::refine_on_all_dims`]); `None` for a set with its own
+    /// encoder, which encodes no other dims.
+    pub localized_refine_all: Option<Localized>,
 }
 
 /// Accuracy of the localizer from the starts.
@@ -196,14 +206,43 @@ struct Query {
     block: usize,
 }
 
-/// Runs the evaluation; `progress(done, total)` after every start.
+/// Runs the evaluation; `progress(stage, done, total)` during encoder training (stage
+/// `"encoder SET / block B"`, in steps) and after every start (stage `"starts"`).
 pub fn evaluate(
     map: &LoadedMap,
     dataset: &Dataset,
     config: &Table3Config,
-    progress: &mut dyn FnMut(usize, usize),
+    progress: &mut dyn FnMut(&str, usize, usize),
 ) -> Result<Table3, PipelineError> {
-    let sets = feature_sets(map, dataset, config.seed)?;
+    // A set, its dims per block and, for an own-encoder row, its encoders per block.
+    type EvalSet = (String, Vec<Vec<usize>>, Option<Vec<QueryEncoder>>);
+    let mut sets: Vec<EvalSet> = feature_sets(map, dataset, config.seed)?
+        .into_iter()
+        .map(|(n, d)| (n, d, None))
+        .collect();
+    for name in &config.own_encoder_sets {
+        let dims = sets
+            .iter()
+            .find(|s| &s.0 == name)
+            .map(|s| s.1.clone())
+            .ok_or_else(|| PipelineError::Config(format!("no feature set named {name:?}")))?;
+        let mut encoders = Vec::with_capacity(dims.len());
+        for (b, d) in dims.iter().enumerate() {
+            let views = encoder_views(dataset, &map.partition, &map.config, b);
+            let stage = format!("encoder {name} / block {b}");
+            let total = map.config.encoder.train.total_steps();
+            encoders.push(train_block_encoder(
+                &map.dir,
+                dataset,
+                &map.config,
+                b,
+                &views,
+                d,
+                &mut |p| progress(&stage, p.step, total),
+            )?);
+        }
+        sets.push((format!("{name}, own encoder"), dims, Some(encoders)));
+    }
     let mut test: Vec<usize> = dataset.split_indices(Split::Test);
     if test.is_empty() {
         return Err(PipelineError::Config(
@@ -274,10 +313,15 @@ pub fn evaluate(
     let mut done = 0;
     for (qi, q) in queries.iter().enumerate() {
         let blk = &map.blocks.0[q.block];
-        let encoded = blk
-            .encoder
-            .encode(&q.image)
-            .map_err(|e| PipelineError::Encoder(e.to_string()))?;
+        let encode = |e: &QueryEncoder| {
+            e.encode(&q.image)
+                .map_err(|e| PipelineError::Encoder(e.to_string()))
+        };
+        let encoded = encode(&blk.encoder)?;
+        let own_encoded = sets
+            .iter()
+            .map(|s| s.2.as_ref().map(|e| encode(&e[q.block])).transpose())
+            .collect::<Result<Vec<_>, _>>()?;
         let stride = crate::localizer::QueryFeatureEncoder::stride(&blk.encoder);
         for s in 0..config.starts_per_query.max(1) {
             let mut rng = ChaCha8Rng::seed_from_u64(config.seed.wrapping_add(1000));
@@ -285,14 +329,16 @@ pub fn evaluate(
             let start = config.start.apply(&q.truth, &mut rng);
             start_t.push(translation_error_m(&start, &q.truth));
             start_r.push(rotation_error_deg(&start, &q.truth));
-            for ((_, dims), a) in sets.iter().zip(acc.iter_mut()) {
+            for (((_, dims, own), a), own_map) in sets.iter().zip(acc.iter_mut()).zip(&own_encoded)
+            {
                 let dims = &dims[q.block];
-                let matcher = block_matcher(&blk.encoder, dims, window[q.block])?;
+                let enc = own.as_ref().map_or(&blk.encoder, |e| &e[q.block]);
+                let encoded = own_map.as_ref().unwrap_or(&encoded);
+                let matcher = block_matcher(enc, dims, window[q.block])?;
                 let channels: Vec<usize> = dims
                     .iter()
                     .map(|d| {
-                        blk.encoder
-                            .dims()
+                        enc.dims()
                             .iter()
                             .position(|e| e == d)
                             .ok_or(PipelineError::DimsNotEncoded { dim: *d })
@@ -335,16 +381,19 @@ pub fn evaluate(
                 }]);
                 let full_matcher =
                     block_matcher(&blk.encoder, blk.encoder.dims(), window[q.block])?;
-                let variants = [
+                let mut variants = vec![
                     (&single_pass, &matcher, dims.clone(), None),
                     (&keep_all, &matcher, dims.clone(), None),
-                    (
+                ];
+                // An encoder of the set's own dims has nothing else to refine on.
+                if own.is_none() {
+                    variants.push((
                         &keep_all,
                         &full_matcher,
                         blk.encoder.dims().to_vec(),
                         Some(dims.clone()),
-                    ),
-                ];
+                    ));
+                }
                 for ((options, m, render_dims, match_dims), out) in
                     variants.into_iter().zip(a.runs.iter_mut())
                 {
@@ -352,7 +401,7 @@ pub fn evaluate(
                         map.blocks.0.iter().map(MapBlock::localizer_block).collect();
                     bl[q.block] = LocalizerBlock {
                         renderer: &blk.renderer,
-                        encoder: &blk.encoder,
+                        encoder: enc,
                         matcher: m,
                         dims: render_dims,
                         match_dims,
@@ -379,7 +428,7 @@ pub fn evaluate(
                 }
             }
             done += 1;
-            progress(done, total);
+            progress("starts", done, total);
         }
     }
     let med = |v: &[f64]| median(v).unwrap_or(f64::NAN);
@@ -387,7 +436,7 @@ pub fn evaluate(
     let rows = sets
         .into_iter()
         .zip(acc)
-        .map(|((name, dims), a)| Table3Row {
+        .map(|((name, dims, _), a)| Table3Row {
             name,
             dims,
             match_ms: med(&a.ms),
@@ -402,12 +451,12 @@ pub fn evaluate(
                 within_1m: a.runs[1].2,
                 failures: a.runs[1].3,
             },
-            localized_refine_all: Localized {
+            localized_refine_all: (!a.runs[2].0.is_empty()).then(|| Localized {
                 t_m: med(&a.runs[2].0),
                 r_deg: med(&a.runs[2].1),
                 within_1m: a.runs[2].2,
                 failures: a.runs[2].3,
-            },
+            }),
         })
         .collect();
     Ok(Table3 {
@@ -453,7 +502,9 @@ pub fn markdown(t: &Table3) -> String {
             r.single_pass_t_m,
             r.single_pass_r_deg,
             loc(&r.localized),
-            loc(&r.localized_refine_all),
+            r.localized_refine_all
+                .as_ref()
+                .map_or("n/a".to_string(), loc),
         ));
     }
     s

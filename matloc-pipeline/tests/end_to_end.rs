@@ -172,7 +172,7 @@ fn tiny_map_is_built_resumed_and_localizes() {
         max_queries: 4,
         ..Default::default()
     };
-    let t3 = matloc_pipeline::table3::evaluate(&map, &dataset, &t3cfg, &mut |_, _| {}).unwrap();
+    let t3 = matloc_pipeline::table3::evaluate(&map, &dataset, &t3cfg, &mut |_, _, _| {}).unwrap();
     eprint!("{}", matloc_pipeline::table3::markdown(&t3));
     let names: Vec<&str> = t3.rows.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(
@@ -200,6 +200,16 @@ fn tiny_map_is_built_resumed_and_localizes() {
         all.localized.t_m,
         t3.start_t_m
     );
+
+    // An own-encoder row for a set that does not exist is a typed error, not a panic.
+    let unknown = matloc_pipeline::table3::Table3Config {
+        own_encoder_sets: vec!["greedy N_s=7".into()],
+        ..t3cfg
+    };
+    assert!(matches!(
+        matloc_pipeline::table3::evaluate(&map, &dataset, &unknown, &mut |_, _, _| {}),
+        Err(matloc_pipeline::PipelineError::Config(_))
+    ));
 
     // An unrelated image (flat grey) is refused, not given a pose.
     let camera = dataset.split(Split::Test).next().unwrap().camera;
