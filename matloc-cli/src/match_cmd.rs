@@ -53,7 +53,7 @@ enum MatchCommand {
         out: PathBuf,
     },
     /// Print the paper's Table 3 on the synthetic world.
-    Eval(EvalArgs),
+    Eval(Box<EvalArgs>),
 }
 
 #[derive(Args, Clone)]
