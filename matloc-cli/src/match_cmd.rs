@@ -98,6 +98,10 @@ struct EvalArgs {
     /// trained on only its dims (one per block, the map's recipe; minutes each). Repeatable.
     #[arg(long, requires = "map")]
     own_encoder: Vec<String>,
+    /// With `--map`: Lowe ratio test for every feature set's matcher (default: none, as the
+    /// map's localizer).
+    #[arg(long, requires = "map")]
+    ratio: Option<f32>,
     /// Where query features come from.
     #[arg(long, value_enum, default_value = "encoder")]
     query: QuerySource,
@@ -269,6 +273,7 @@ fn eval_map(
         starts_per_query: args.starts,
         seed: args.scene.seed,
         own_encoder_sets: args.own_encoder.clone(),
+        ratio: args.ratio,
         ..Default::default()
     };
     let t0 = Instant::now();

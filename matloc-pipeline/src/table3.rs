@@ -53,6 +53,8 @@ pub struct Table3Config {
     /// their own: one per block trained on only those dims, the map's encoder recipe and
     /// views (the paper's encoder projects into the selected features). Minutes per block.
     pub own_encoder_sets: Vec<String>,
+    /// Lowe ratio test of the matcher for every set (`None`: the map's matcher, none).
+    pub ratio: Option<f32>,
 }
 
 impl Default for Table3Config {
@@ -68,6 +70,7 @@ impl Default for Table3Config {
             precision_px: 2.0,
             seed: 0,
             own_encoder_sets: Vec::new(),
+            ratio: None,
         }
     }
 }
@@ -334,7 +337,8 @@ pub fn evaluate(
                 let dims = &dims[q.block];
                 let enc = own.as_ref().map_or(&blk.encoder, |e| &e[q.block]);
                 let encoded = own_map.as_ref().unwrap_or(&encoded);
-                let matcher = block_matcher(enc, dims, window[q.block])?;
+                let mut matcher = block_matcher(enc, dims, window[q.block])?;
+                matcher.config.ratio = config.ratio;
                 let channels: Vec<usize> = dims
                     .iter()
                     .map(|d| {
@@ -379,8 +383,9 @@ pub fn evaluate(
                     cam_from_world: start,
                     block: Some(q.block),
                 }]);
-                let full_matcher =
+                let mut full_matcher =
                     block_matcher(&blk.encoder, blk.encoder.dims(), window[q.block])?;
+                full_matcher.config.ratio = config.ratio;
                 let mut variants = vec![
                     (&single_pass, &matcher, dims.clone(), None),
                     (&keep_all, &matcher, dims.clone(), None),
