@@ -311,6 +311,18 @@ pub fn evaluate(
             runs: Default::default(),
         })
         .collect();
+    // Each block's matcher over all its encoded dims (the refine-on-all-dims variant).
+    let full_matchers = map
+        .blocks
+        .0
+        .iter()
+        .zip(&window)
+        .map(|(b, w)| {
+            let mut m = block_matcher(&b.encoder, b.encoder.dims(), *w)?;
+            m.config.ratio = config.ratio;
+            Ok(m)
+        })
+        .collect::<Result<Vec<_>, PipelineError>>()?;
     let (mut start_t, mut start_r) = (Vec::new(), Vec::new());
     let total = queries.len() * config.starts_per_query.max(1);
     let mut done = 0;
@@ -383,9 +395,6 @@ pub fn evaluate(
                     cam_from_world: start,
                     block: Some(q.block),
                 }]);
-                let mut full_matcher =
-                    block_matcher(&blk.encoder, blk.encoder.dims(), window[q.block])?;
-                full_matcher.config.ratio = config.ratio;
                 let mut variants = vec![
                     (&single_pass, &matcher, dims.clone(), None),
                     (&keep_all, &matcher, dims.clone(), None),
@@ -394,7 +403,7 @@ pub fn evaluate(
                 if own.is_none() {
                     variants.push((
                         &keep_all,
-                        &full_matcher,
+                        &full_matchers[q.block],
                         blk.encoder.dims().to_vec(),
                         Some(dims.clone()),
                     ));
