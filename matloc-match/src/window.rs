@@ -397,20 +397,16 @@ pub(crate) fn nn_tables_windowed(
     // Dim-major map over grid cells, padded so a lane group may run past a row's end.
     let stride = cells + 4 * LANES;
     let mut mt = vec![0f32; d * stride];
-    let mut valid = vec![false; stride];
-    for (cell, ok) in valid.iter_mut().enumerate().take(cells) {
+    // 0 on a rendered cell, -inf on a hole or the padding (the vector kernel adds it).
+    let mut hole = vec![f32::NEG_INFINITY; stride];
+    for (cell, h) in hole.iter_mut().enumerate().take(cells) {
         if let Some(j) = map.row(cell) {
-            *ok = true;
+            *h = 0.0;
             for k in 0..d {
                 mt[k * stride + cell] = map.data[j * d + k];
             }
         }
     }
-    // 0 on a rendered cell, -inf on a hole or the padding (the vector kernel adds it).
-    let hole: Vec<f32> = valid
-        .iter()
-        .map(|&v| if v { 0.0 } else { f32::NEG_INFINITY })
-        .collect();
     #[cfg(target_arch = "x86_64")]
     let use_avx2 =
         std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma");
@@ -513,7 +509,7 @@ pub(crate) fn nn_tables_windowed(
                                 let cg = cell0 + g * LANES;
                                 let cc = c0 + g * LANES;
                                 let v: [f32; LANES] = std::array::from_fn(|l| {
-                                    if (qlo..=qhi).contains(&(cc + l)) && valid[cg + l] {
+                                    if (qlo..=qhi).contains(&(cc + l)) && hole[cg + l] == 0.0 {
                                         v[l]
                                     } else {
                                         f32::NEG_INFINITY

@@ -275,18 +275,23 @@ struct Pass {
     log10_nfa: f64,
 }
 
+/// Positions of field dims `dims` in the list `within` (an encoder's output channels, a
+/// block's rendered dims); a dim it lacks is [`PipelineError::DimsNotEncoded`].
+pub(crate) fn positions_of(dims: &[usize], within: &[usize]) -> Result<Vec<usize>, PipelineError> {
+    dims.iter()
+        .map(|d| {
+            within
+                .iter()
+                .position(|e| e == d)
+                .ok_or(PipelineError::DimsNotEncoded { dim: *d })
+        })
+        .collect()
+}
+
 impl Localizer<'_> {
     /// Channel indices of `dims` in the encoder's output.
     fn channels_of(block: &LocalizerBlock<'_>) -> Result<Vec<usize>, PipelineError> {
-        let enc = block.encoder.dims();
-        let dims = &block.dims;
-        dims.iter()
-            .map(|d| {
-                enc.iter()
-                    .position(|e| e == d)
-                    .ok_or(PipelineError::DimsNotEncoded { dim: *d })
-            })
-            .collect()
+        positions_of(&block.dims, block.encoder.dims())
     }
 
     fn pass(
@@ -313,17 +318,7 @@ impl Localizer<'_> {
         clock.add("render", t);
         let t = Instant::now();
         let selection = match &block.match_dims {
-            Some(m) => Some(
-                m.iter()
-                    .map(|d| {
-                        block
-                            .dims
-                            .iter()
-                            .position(|e| e == d)
-                            .ok_or(PipelineError::DimsNotEncoded { dim: *d })
-                    })
-                    .collect::<Result<Vec<usize>, _>>()?,
-            ),
+            Some(m) => Some(positions_of(m, &block.dims)?),
             None => None,
         };
         let matches = match block

@@ -994,19 +994,11 @@ pub fn block_matcher(
     window_px: Option<f64>,
 ) -> Result<MnnMatcher, PipelineError> {
     let full = encoder.stats();
-    let mut stats = FeatureStats {
-        mean: Vec::with_capacity(dims.len()),
-        std: Vec::with_capacity(dims.len()),
+    let channels = crate::localizer::positions_of(dims, encoder.dims())?;
+    let stats = FeatureStats {
+        mean: channels.iter().map(|&c| full.mean[c]).collect(),
+        std: channels.iter().map(|&c| full.std[c]).collect(),
     };
-    for d in dims {
-        let c = encoder
-            .dims()
-            .iter()
-            .position(|e| e == d)
-            .ok_or(PipelineError::DimsNotEncoded { dim: *d })?;
-        stats.mean.push(full.mean[c]);
-        stats.std.push(full.std[c]);
-    }
     Ok(MnnMatcher::new(MnnConfig {
         stats: Some(stats),
         window_px,

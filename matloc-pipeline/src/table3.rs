@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::confidence::ConfidenceModel;
 use crate::error::PipelineError;
-use crate::localizer::{LocalizeOptions, Localizer, LocalizerBlock};
+use crate::localizer::{LocalizeOptions, Localizer, LocalizerBlock, positions_of};
 use crate::stages::{
     FixedPlace, LoadedMap, MapBlock, block_matcher, block_pair_set, encoder_views, load_image,
     train_block_encoder,
@@ -351,15 +351,7 @@ pub fn evaluate(
                 let encoded = own_map.as_ref().unwrap_or(&encoded);
                 let mut matcher = block_matcher(enc, dims, window[q.block])?;
                 matcher.config.ratio = config.ratio;
-                let channels: Vec<usize> = dims
-                    .iter()
-                    .map(|d| {
-                        enc.dims()
-                            .iter()
-                            .position(|e| e == d)
-                            .ok_or(PipelineError::DimsNotEncoded { dim: *d })
-                    })
-                    .collect::<Result<_, _>>()?;
+                let channels = positions_of(dims, enc.dims())?;
                 // Matching at the start pose: time and precision.
                 let points = render_map_points(
                     &blk.renderer,
