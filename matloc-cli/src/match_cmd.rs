@@ -75,6 +75,15 @@ struct SceneArgs {
     pair_rotation_deg: f64,
 }
 
+/// Criterion of `--render-select`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum RenderSelectArg {
+    /// F1 of windowed matches within one cell of the true projection.
+    F1,
+    /// One render–match–PnP pass.
+    Pnp,
+}
+
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum QuerySource {
     /// Features rendered at the query's true pose (upper bound: a perfect encoder).
@@ -102,6 +111,11 @@ struct EvalArgs {
     /// map's localizer).
     #[arg(long, requires = "map")]
     ratio: Option<f32>,
+    /// With `--map`: also select N_s = 5 dims per block on held-out renders, scored the way
+    /// the localizer uses them: `f1` = windowed-match F1 within one cell, `pnp` = one PnP
+    /// pass from perturbed poses. Repeatable; adds a row each.
+    #[arg(long, requires = "map", value_enum)]
+    render_select: Vec<RenderSelectArg>,
     /// Where query features come from.
     #[arg(long, value_enum, default_value = "encoder")]
     query: QuerySource,
@@ -274,6 +288,16 @@ fn eval_map(
         seed: args.scene.seed,
         own_encoder_sets: args.own_encoder.clone(),
         ratio: args.ratio,
+        render_scores: args
+            .render_select
+            .iter()
+            .map(|r| match r {
+                RenderSelectArg::F1 => {
+                    matloc_pipeline::render_select::RenderScore::MatchF1 { tol_px: 4.0 }
+                }
+                RenderSelectArg::Pnp => matloc_pipeline::render_select::RenderScore::SinglePass,
+            })
+            .collect(),
         ..Default::default()
     };
     let t0 = Instant::now();

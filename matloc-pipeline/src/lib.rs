@@ -11,6 +11,8 @@
 //!   poses and map as MatLoc.
 //! - [`confidence`]: calibrated P(correct | inliers, inlier ratio, matches) and the refusal
 //!   rule.
+//! - [`render_select`]: feature selection scored by windowed matching (or a PnP pass) of
+//!   held-out views against renders, as the localizer uses the dims.
 //! - [`table3`]: the paper's Table 3 (feature sets × matching time, precision, pose error) on
 //!   a built map.
 //! - [`eval`]: per-method accuracy, refusal and timing summaries in the layout of the paper's
@@ -29,6 +31,7 @@ pub mod eval;
 pub mod localizer;
 pub mod manifest;
 pub mod methods;
+pub mod render_select;
 pub mod stages;
 pub mod table3;
 

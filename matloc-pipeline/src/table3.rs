@@ -29,6 +29,7 @@ use serde::{Deserialize, Serialize};
 use crate::confidence::ConfidenceModel;
 use crate::error::PipelineError;
 use crate::localizer::{LocalizeOptions, Localizer, LocalizerBlock, positions_of};
+use crate::render_select::{RenderScore, RenderSelectConfig, select_on_renders, selection_views};
 use crate::stages::{
     FixedPlace, LoadedMap, MapBlock, block_matcher, block_pair_set, encoder_views, load_image,
     train_block_encoder,
@@ -55,6 +56,9 @@ pub struct Table3Config {
     pub own_encoder_sets: Vec<String>,
     /// Lowe ratio test of the matcher for every set (`None`: the map's matcher, none).
     pub ratio: Option<f32>,
+    /// Extra N_s = 5 rows selected on held-out renders by these criteria
+    /// ([`crate::render_select`]), e.g. windowed-match F1 or one PnP pass.
+    pub render_scores: Vec<RenderScore>,
 }
 
 impl Default for Table3Config {
@@ -71,6 +75,7 @@ impl Default for Table3Config {
             seed: 0,
             own_encoder_sets: Vec::new(),
             ratio: None,
+            render_scores: Vec::new(),
         }
     }
 }
@@ -223,6 +228,32 @@ pub fn evaluate(
         .into_iter()
         .map(|(n, d)| (n, d, None))
         .collect();
+    for score in &config.render_scores {
+        let name = match score {
+            RenderScore::MatchF1 { tol_px } => format!("render-F1 {tol_px} px N_s=5"),
+            RenderScore::SinglePass => "render-PnP N_s=5".to_string(),
+        };
+        let cfg = RenderSelectConfig {
+            score: *score,
+            seed: config.seed,
+            ..RenderSelectConfig::default()
+        };
+        let mut dims = Vec::new();
+        for (b, block) in map.blocks.0.iter().enumerate() {
+            progress(&format!("select {name} / block {b}"), 0, 1);
+            let views = selection_views(block, dataset, &map.partition, &map.config, b, &cfg)?;
+            let sel = select_on_renders(
+                block,
+                &views,
+                5,
+                map.options().first_pass_threshold_cells,
+                &cfg,
+            )?;
+            progress(&format!("select {name} / block {b}"), 1, 1);
+            dims.push(sel.dims);
+        }
+        sets.push((name, dims, None));
+    }
     for name in &config.own_encoder_sets {
         let dims = sets
             .iter()

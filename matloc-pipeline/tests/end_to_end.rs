@@ -11,6 +11,9 @@ use matloc_data::{Split, read_dataset};
 use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
 use matloc_pipeline::diagnostics::RenderedQueryEncoder;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use matloc_pipeline::render_select::{
+    RenderScore, RenderSelectConfig, select_on_renders, selection_views,
+};
 use matloc_pipeline::stages::LoadedMap;
 use matloc_pipeline::{LocalizeOptions, Localizer, LocalizerBlock};
 use matloc_pnp::LoRansacPnp;
@@ -170,6 +173,7 @@ fn tiny_map_is_built_resumed_and_localizes() {
     // perturbed true poses with the map's own encoder and localizer.
     let t3cfg = matloc_pipeline::table3::Table3Config {
         max_queries: 4,
+        render_scores: vec![RenderScore::MatchF1 { tol_px: 4.0 }],
         ..Default::default()
     };
     let t3 = matloc_pipeline::table3::evaluate(&map, &dataset, &t3cfg, &mut |_, _, _| {}).unwrap();
@@ -184,12 +188,13 @@ fn tiny_map_is_built_resumed_and_localizes() {
             "greedy N_s=10",
             "greedy N_s=5",
             "paper-BIP N_s=10",
-            "random-5"
+            "random-5",
+            "render-F1 4 px N_s=5"
         ]
     );
     let sizes: Vec<usize> = t3.rows.iter().map(|r| r.dims[0].len()).collect();
     // The BIP as printed minimises a mean, so it picks a single dim whatever the budget.
-    assert_eq!(sizes, [47, 32, 15, 10, 5, 1, 5]);
+    assert_eq!(sizes, [47, 32, 15, 10, 5, 1, 5, 5]);
     assert_eq!((t3.queries, t3.starts), (4, 4));
     assert!(t3.start_t_m <= 3.0 && t3.start_r_deg <= 5.0);
     let all = &t3.rows[0];
@@ -200,6 +205,31 @@ fn tiny_map_is_built_resumed_and_localizes() {
         all.localized.t_m,
         t3.start_t_m
     );
+
+    // Selection on held-out renders directly: sorted distinct dims, a positive F1 (the
+    // encoder matches some cells within a cell of the truth), bad budgets are typed errors.
+    let rs_cfg = RenderSelectConfig::default();
+    let blk = &map.blocks.0[0];
+    let views = selection_views(blk, &dataset, &map.partition, &map.config, 0, &rs_cfg).unwrap();
+    assert!(!views.is_empty());
+    let sel = select_on_renders(blk, &views, 3, 3.0, &rs_cfg).unwrap();
+    assert_eq!(sel.dims.len(), 3);
+    assert!(sel.dims.windows(2).all(|w| w[0] < w[1]) && sel.dims[2] < 47);
+    assert!(sel.report.objective > 0.0, "{:?}", sel.report);
+    for bad in [0, 48] {
+        assert!(matches!(
+            select_on_renders(blk, &views, bad, 3.0, &rs_cfg),
+            Err(matloc_pipeline::PipelineError::Config(_))
+        ));
+    }
+    assert!(matches!(
+        select_on_renders(blk, &[], 5, 3.0, &rs_cfg),
+        Err(matloc_pipeline::PipelineError::Config(_))
+    ));
+    assert!(matches!(
+        selection_views(blk, &dataset, &map.partition, &map.config, 9, &rs_cfg),
+        Err(matloc_pipeline::PipelineError::Config(_))
+    ));
 
     // An own-encoder row for a set that does not exist is a typed error, not a panic.
     let unknown = matloc_pipeline::table3::Table3Config {

@@ -242,26 +242,61 @@ impl MatchProblem {
     }
 }
 
-impl FeatureSelector for MatchingSelector {
-    fn name(&self) -> &str {
-        "greedy-mnn"
-    }
+/// Greedy forward selection with optional one-swap refinement over any subset score (higher is
+/// better). [`MatchingSelector`] scores subsets by MNN on GT pairs; callers with a costlier,
+/// closer-to-use criterion (e.g. matching whole renders in an image window, or PnP) plug it in
+/// here.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct GreedySearch {
+    /// After the greedy pass, try replacing each selected dim by each unselected one and keep
+    /// improvements, until no swap helps or `max_swap_rounds` passes are done.
+    pub swap_refinement: bool,
+    /// Maximum refinement passes.
+    pub max_swap_rounds: usize,
+    /// Stop adding dims when the best addition does not improve the score (else select exactly
+    /// `N_s`).
+    pub stop_when_no_gain: bool,
+}
 
-    fn select(
+impl Default for GreedySearch {
+    fn default() -> Self {
+        GreedySearch {
+            swap_refinement: true,
+            max_swap_rounds: 3,
+            stop_when_no_gain: false,
+        }
+    }
+}
+
+/// What [`GreedySearch::run`] found.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GreedyResult {
+    /// Selected dims, ascending.
+    pub dims: Vec<usize>,
+    /// Score of the selection.
+    pub score: f64,
+    /// Score of every dim on its own (from the first greedy step).
+    pub single: Vec<f64>,
+    /// Subsets scored.
+    pub evaluations: usize,
+}
+
+impl GreedySearch {
+    /// Selects up to `n_s` of `d` dims maximising `score` (called with candidate subsets in
+    /// insertion order, never empty). Ties go to the lowest dim index, so a deterministic
+    /// score gives a deterministic selection.
+    pub fn run<E>(
         &self,
-        pairs: &PairSet,
+        d: usize,
         n_s: usize,
-        rng: &mut dyn RngCore,
-    ) -> Result<Selection, SelectError> {
-        check_budget(pairs, n_s)?;
-        let cfg = &self.config;
-        let prob = MatchProblem::new(pairs, cfg, rng);
-        let d = pairs.dims();
+        score: &mut dyn FnMut(&[usize]) -> Result<f64, E>,
+    ) -> Result<GreedyResult, E> {
         let mut evaluations = 0usize;
         let mut selected: Vec<usize> = Vec::new();
         let mut current = f64::NEG_INFINITY;
         let mut single = vec![0.0f64; d];
-        while selected.len() < n_s {
+        while selected.len() < n_s.min(d) {
             let mut best: Option<(usize, f64)> = None;
             for cand in 0..d {
                 if selected.contains(&cand) {
@@ -269,25 +304,24 @@ impl FeatureSelector for MatchingSelector {
                 }
                 let mut trial = selected.clone();
                 trial.push(cand);
-                let s = prob.score(&trial, cfg)?;
+                let s = score(&trial)?;
                 evaluations += 1;
                 if selected.is_empty() {
                     single[cand] = s;
                 }
-                // Strict `>`: ties go to the lowest dim index, so results are deterministic.
                 if best.is_none_or(|(_, bs)| s > bs) {
                     best = Some((cand, s));
                 }
             }
             let Some((cand, s)) = best else { break };
-            if cfg.stop_when_no_gain && !selected.is_empty() && s <= current {
+            if self.stop_when_no_gain && !selected.is_empty() && s <= current {
                 break;
             }
             selected.push(cand);
             current = s;
         }
-        if cfg.swap_refinement {
-            for _ in 0..cfg.max_swap_rounds {
+        if self.swap_refinement {
+            for _ in 0..self.max_swap_rounds {
                 let mut improved = false;
                 for slot in 0..selected.len() {
                     for cand in 0..d {
@@ -296,7 +330,7 @@ impl FeatureSelector for MatchingSelector {
                         }
                         let mut trial = selected.clone();
                         trial[slot] = cand;
-                        let s = prob.score(&trial, cfg)?;
+                        let s = score(&trial)?;
                         evaluations += 1;
                         if s > current {
                             selected = trial;
@@ -311,6 +345,40 @@ impl FeatureSelector for MatchingSelector {
             }
         }
         selected.sort_unstable();
+        Ok(GreedyResult {
+            dims: selected,
+            score: current,
+            single,
+            evaluations,
+        })
+    }
+}
+
+impl FeatureSelector for MatchingSelector {
+    fn name(&self) -> &str {
+        "greedy-mnn"
+    }
+
+    fn select(
+        &self,
+        pairs: &PairSet,
+        n_s: usize,
+        rng: &mut dyn RngCore,
+    ) -> Result<Selection, SelectError> {
+        check_budget(pairs, n_s)?;
+        let cfg = &self.config;
+        let prob = MatchProblem::new(pairs, cfg, rng);
+        let search = GreedySearch {
+            swap_refinement: cfg.swap_refinement,
+            max_swap_rounds: cfg.max_swap_rounds,
+            stop_when_no_gain: cfg.stop_when_no_gain,
+        };
+        let GreedyResult {
+            dims: selected,
+            score: current,
+            single,
+            evaluations,
+        } = search.run(pairs.dims(), n_s, &mut |trial| prob.score(trial, cfg))?;
         Ok(Selection {
             dims: selected,
             report: SelectionReport {

@@ -25,7 +25,8 @@ pub use bip::{
 };
 pub use error::SelectError;
 pub use greedy::{
-    FisherConfig, FisherSelector, MatchScore, MatchingSelector, MatchingSelectorConfig,
+    FisherConfig, FisherSelector, GreedyResult, GreedySearch, MatchScore, MatchingSelector,
+    MatchingSelectorConfig,
 };
 pub use pairs::PairSet;
 pub use region::{RegionId, RegionSelections, select_per_region};

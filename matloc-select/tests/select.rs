@@ -111,6 +111,52 @@ proptest! {
         let f = brute_force(&obj, ns);
         prop_assert!((b.value - f.value).abs() < 1e-9, "{} vs {}", b.value, f.value);
     }
+
+    /// On an additive score greedy forward selection is optimal: it picks the `N_s` best dims
+    /// (the brute force of the negated costs), with or without swaps, and reports every dim's
+    /// own score.
+    #[test]
+    fn greedy_search_is_exact_on_additive_scores(gains in prop::collection::vec(-5.0f64..5.0, 1..10), ns in 1usize..10, swap in any::<bool>()) {
+        let ns = ns.min(gains.len());
+        let search = GreedySearch { swap_refinement: swap, ..GreedySearch::default() };
+        let found = search
+            .run(gains.len(), ns, &mut |s: &[usize]| Ok::<f64, ()>(s.iter().map(|&d| gains[d]).sum()))
+            .unwrap();
+        prop_assert_eq!(found.dims.len(), ns);
+        prop_assert!(found.dims.windows(2).all(|w| w[0] < w[1]));
+        let mut sorted = gains.clone();
+        sorted.sort_by(|a, b| b.total_cmp(a));
+        let best: f64 = sorted[..ns].iter().sum();
+        prop_assert!((found.score - best).abs() < 1e-9, "{} vs {}", found.score, best);
+        prop_assert_eq!(&found.single, &gains);
+    }
+
+    /// Swaps never make the selection worse than the greedy pass, and the reported score is
+    /// the score of the returned dims.
+    #[test]
+    fn greedy_swaps_never_hurt(gains in prop::collection::vec(-3.0f64..3.0, 3..9), w in -2.0f64..2.0, ns in 2usize..6) {
+        let ns = ns.min(gains.len());
+        let score = |s: &[usize]| -> f64 {
+            let base: f64 = s.iter().map(|&d| gains[d]).sum();
+            let mut inter = 0.0;
+            for (i, &a) in s.iter().enumerate() {
+                for &b in &s[i + 1..] {
+                    inter += w * (((a * b + a + b) % 5) as f64 - 2.0);
+                }
+            }
+            base + inter
+        };
+        let plain = GreedySearch { swap_refinement: false, ..GreedySearch::default() }
+            .run(gains.len(), ns, &mut |s: &[usize]| Ok::<f64, ()>(score(s)))
+            .unwrap();
+        let swapped = GreedySearch::default()
+            .run(gains.len(), ns, &mut |s: &[usize]| Ok::<f64, ()>(score(s)))
+            .unwrap();
+        prop_assert!(swapped.score >= plain.score - 1e-12);
+        prop_assert!((score(&swapped.dims) - swapped.score).abs() < 1e-9);
+        // Swaps exist only when some dim stays out.
+        prop_assert_eq!(swapped.evaluations > plain.evaluations, ns < gains.len());
+    }
 }
 
 #[test]
@@ -200,6 +246,18 @@ fn deterministic_by_seed() {
     assert_eq!(run(&r, 9).dims.len(), 3);
     let differs = (0..10).any(|s| run(&r, s).dims != run(&r, 9).dims);
     assert!(differs);
+}
+
+#[test]
+fn greedy_search_passes_score_errors_on() {
+    let err = GreedySearch::default().run(4, 2, &mut |s: &[usize]| {
+        if s.contains(&2) {
+            Err("dim 2 cannot be scored")
+        } else {
+            Ok(1.0)
+        }
+    });
+    assert_eq!(err, Err("dim 2 cannot be scored"));
 }
 
 #[test]
