@@ -329,6 +329,8 @@ fn eval_map(
         println!("{}: dims per block {:?}", r.name, r.dims);
     }
     print!("{}", matloc_pipeline::table3::markdown(&table));
+    println!();
+    print!("{}", matloc_pipeline::table3::paired_markdown(&table));
     if let Some(path) = &args.json {
         matloc_data::fsutil::write_atomic(path, serde_json::to_string_pretty(&table)?.as_bytes())?;
     }

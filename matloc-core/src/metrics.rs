@@ -46,6 +46,78 @@ pub fn median(values: &[f64]) -> Option<f64> {
     })
 }
 
+/// `median(a) − median(b)` for paired samples and its bootstrap confidence interval.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PairedDifference {
+    /// `median(a) − median(b)` on the samples as given.
+    pub difference: f64,
+    /// Lower end of the percentile interval.
+    pub low: f64,
+    /// Upper end of the percentile interval.
+    pub high: f64,
+}
+
+/// Difference of the medians of two paired samples (`a[i]` and `b[i]` measured on the same
+/// case) with a percentile bootstrap interval at `level` (e.g. 0.95) over `resamples`
+/// resamples, deterministic from `seed`.
+///
+/// Cases are resampled in clusters of `cluster` consecutive entries with the pairing kept:
+/// several starts of one query share its image, so they are not independent, and resampling
+/// them one by one would make the interval too narrow. `None` when the lengths differ, the
+/// input is empty, `cluster` is 0 or does not divide the length, `resamples` is 0 or `level`
+/// is not in (0, 1).
+pub fn paired_median_difference(
+    a: &[f64],
+    b: &[f64],
+    cluster: usize,
+    resamples: usize,
+    level: f64,
+    seed: u64,
+) -> Option<PairedDifference> {
+    let n = a.len();
+    if n == 0
+        || b.len() != n
+        || cluster == 0
+        || !n.is_multiple_of(cluster)
+        || resamples == 0
+        || !(level > 0.0 && level < 1.0)
+    {
+        return None;
+    }
+    let clusters = n / cluster;
+    let difference = median(a)? - median(b)?;
+    // SplitMix64: enough for resampling indices, and keeps this crate free of a RNG
+    // dependency.
+    let mut state = seed;
+    let mut next = move || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    let (mut ra, mut rb) = (Vec::with_capacity(n), Vec::with_capacity(n));
+    let mut diffs = Vec::with_capacity(resamples);
+    for _ in 0..resamples {
+        ra.clear();
+        rb.clear();
+        for _ in 0..clusters {
+            let c = (next() % clusters as u64) as usize;
+            ra.extend_from_slice(&a[c * cluster..(c + 1) * cluster]);
+            rb.extend_from_slice(&b[c * cluster..(c + 1) * cluster]);
+        }
+        diffs.push(median(&ra)? - median(&rb)?);
+    }
+    diffs.sort_by(|x, y| x.total_cmp(y));
+    let tail = 0.5 * (1.0 - level);
+    let at = |q: f64| diffs[((q * resamples as f64).floor() as usize).min(resamples - 1)];
+    Some(PairedDifference {
+        difference,
+        low: at(tail),
+        high: at(1.0 - tail),
+    })
+}
+
 /// Peak signal-to-noise ratio in dB for images with values in `[0, 1]`.
 ///
 /// Identical images give `f64::INFINITY`.
@@ -220,5 +292,52 @@ mod tests {
         assert_eq!(median(&[3.0, 1.0, 2.0]), Some(2.0));
         assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
         assert_eq!(median(&[]), None);
+    }
+
+    #[test]
+    fn paired_difference_rejects_bad_input() {
+        let a = [1.0, 2.0, 3.0, 4.0];
+        assert!(paired_median_difference(&a, &a[..3], 1, 100, 0.95, 0).is_none());
+        assert!(paired_median_difference(&[], &[], 1, 100, 0.95, 0).is_none());
+        assert!(paired_median_difference(&a, &a, 0, 100, 0.95, 0).is_none());
+        assert!(paired_median_difference(&a, &a, 3, 100, 0.95, 0).is_none());
+        assert!(paired_median_difference(&a, &a, 2, 0, 0.95, 0).is_none());
+        assert!(paired_median_difference(&a, &a, 2, 100, 1.0, 0).is_none());
+    }
+
+    #[test]
+    fn paired_difference_separates_a_clear_shift_from_noise() {
+        // 60 cases in 20 clusters of 3; b is a shifted by 0.5 plus small noise.
+        let a: Vec<f64> = (0..60).map(|i| ((i * 37) % 60) as f64 / 60.0).collect();
+        let b: Vec<f64> = a
+            .iter()
+            .enumerate()
+            .map(|(i, x)| x + 0.5 + 0.01 * ((i % 7) as f64 - 3.0))
+            .collect();
+        let d = paired_median_difference(&a, &b, 3, 2000, 0.95, 1).unwrap();
+        assert!(d.high < 0.0, "{d:?}");
+        assert!(d.low <= d.difference && d.difference <= d.high, "{d:?}");
+        // Against itself the difference is exactly 0 in every resample.
+        let z = paired_median_difference(&a, &a, 3, 500, 0.95, 1).unwrap();
+        assert_eq!((z.difference, z.low, z.high), (0.0, 0.0, 0.0));
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn paired_difference_is_deterministic_and_shift_equivariant(
+            a in proptest::collection::vec(0.0f64..10.0, 12),
+            b in proptest::collection::vec(0.0f64..10.0, 12),
+            shift in -5.0f64..5.0,
+            seed in 0u64..1000,
+        ) {
+            let d = paired_median_difference(&a, &b, 2, 300, 0.9, seed).unwrap();
+            proptest::prop_assert_eq!(d, paired_median_difference(&a, &b, 2, 300, 0.9, seed).unwrap());
+            proptest::prop_assert!(d.low <= d.high);
+            let shifted: Vec<f64> = a.iter().map(|x| x + shift).collect();
+            let s = paired_median_difference(&shifted, &b, 2, 300, 0.9, seed).unwrap();
+            for (x, y) in [(s.difference, d.difference), (s.low, d.low), (s.high, d.high)] {
+                proptest::prop_assert!((x - y - shift).abs() < 1e-9);
+            }
+        }
     }
 }

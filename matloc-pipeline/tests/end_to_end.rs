@@ -205,6 +205,18 @@ fn tiny_map_is_built_resumed_and_localizes() {
         all.localized.t_m,
         t3.start_t_m
     );
+    // Per-start errors back the medians and the paired comparison against all dims.
+    for r in &t3.rows {
+        assert_eq!(r.localized.per_start_t_m.len(), t3.starts);
+        assert_eq!(
+            Some(r.localized.t_m),
+            matloc_core::metrics::median(&r.localized.per_start_t_m)
+        );
+    }
+    let paired = matloc_pipeline::table3::paired_markdown(&t3);
+    eprint!("{paired}");
+    assert_eq!(paired.lines().count(), 2 + t3.rows.len());
+    assert!(paired.contains("| all-47 |") && paired.contains("+0.000 m [+0.000, +0.000]"));
 
     // Selection on held-out renders directly: sorted distinct dims, a positive F1 (the
     // encoder matches some cells within a cell of the truth), bad budgets are typed errors.
