@@ -238,3 +238,23 @@ fn info(root: &Path, json: bool) -> Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    /// The shipped quality config is a partial file: what it names changes, the rest stays
+    /// the default.
+    #[test]
+    fn shipped_quality_config_parses_onto_the_defaults() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/quality.json");
+        let c = super::read_config(&path).unwrap();
+        let d = matloc_pipeline::build::MapConfig::default();
+        assert_eq!(c.nerf.steps, 2000);
+        assert_eq!(c.encoder.train.steps, 1200);
+        assert_eq!(c.encoder.train.head_phase.steps, 6000);
+        assert_eq!(c.place, d.place);
+        assert_eq!(c.localize, d.localize);
+        assert_eq!(c.encoder.views_per_block, d.encoder.views_per_block);
+    }
+}
