@@ -10,6 +10,7 @@
 //! - Geometry is `f64`; images and features are `f32`.
 
 pub mod camera;
+pub mod hash;
 pub mod image;
 pub mod metrics;
 pub mod pose;

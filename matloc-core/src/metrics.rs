@@ -1,5 +1,6 @@
 //! Error metrics: pose errors, recall at thresholds, PSNR and SSIM.
 
+use crate::hash::splitmix64_next;
 use crate::image::{Image, ImageError};
 use crate::pose::{Pose, camera_center};
 
@@ -86,23 +87,16 @@ pub fn paired_median_difference(
     }
     let clusters = n / cluster;
     let difference = median(a)? - median(b)?;
-    // SplitMix64: enough for resampling indices, and keeps this crate free of a RNG
+    // SplitMix64 is enough for resampling indices and keeps this crate free of a RNG
     // dependency.
     let mut state = seed;
-    let mut next = move || {
-        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    };
     let (mut ra, mut rb) = (Vec::with_capacity(n), Vec::with_capacity(n));
     let mut diffs = Vec::with_capacity(resamples);
     for _ in 0..resamples {
         ra.clear();
         rb.clear();
         for _ in 0..clusters {
-            let c = (next() % clusters as u64) as usize;
+            let c = (splitmix64_next(&mut state) % clusters as u64) as usize;
             ra.extend_from_slice(&a[c * cluster..(c + 1) * cluster]);
             rb.extend_from_slice(&b[c * cluster..(c + 1) * cluster]);
         }

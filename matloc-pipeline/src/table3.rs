@@ -333,13 +333,15 @@ pub fn evaluate(
         .map(|b| matloc_match::Matcher::window_px(&b.matcher))
         .collect();
 
+    // Per-start translation / rotation errors, starts within 1 m / 5°, starts without a pose.
+    type Run = (Vec<f64>, Vec<f64>, usize, usize);
     struct Acc {
         ms: Vec<f64>,
         matches: Vec<f64>,
         prec: Vec<f64>,
         prec2: Vec<f64>,
         // Single pass, localizer on the set's dims, localizer refining on all dims.
-        runs: [(Vec<f64>, Vec<f64>, usize, usize); 3],
+        runs: [Run; 3],
     }
     let mut acc: Vec<Acc> = sets
         .iter()
@@ -479,34 +481,31 @@ pub fn evaluate(
     }
     let med = |v: &[f64]| median(v).unwrap_or(f64::NAN);
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let localized = |(t, r, within_1m, failures): Run| Localized {
+        t_m: med(&t),
+        r_deg: med(&r),
+        within_1m,
+        failures,
+        per_start_t_m: t,
+        per_start_r_deg: r,
+    };
     let rows = sets
         .into_iter()
         .zip(acc)
-        .map(|((name, dims, _), a)| Table3Row {
-            name,
-            dims,
-            match_ms: med(&a.ms),
-            matches: med(&a.matches),
-            precision: mean(&a.prec),
-            precision_2_cells: mean(&a.prec2),
-            single_pass_t_m: med(&a.runs[0].0),
-            single_pass_r_deg: med(&a.runs[0].1),
-            localized: Localized {
-                t_m: med(&a.runs[1].0),
-                r_deg: med(&a.runs[1].1),
-                within_1m: a.runs[1].2,
-                failures: a.runs[1].3,
-                per_start_t_m: a.runs[1].0.clone(),
-                per_start_r_deg: a.runs[1].1.clone(),
-            },
-            localized_refine_all: (!a.runs[2].0.is_empty()).then(|| Localized {
-                t_m: med(&a.runs[2].0),
-                r_deg: med(&a.runs[2].1),
-                within_1m: a.runs[2].2,
-                failures: a.runs[2].3,
-                per_start_t_m: a.runs[2].0.clone(),
-                per_start_r_deg: a.runs[2].1.clone(),
-            }),
+        .map(|((name, dims, _), a)| {
+            let [single, own, all] = a.runs;
+            Table3Row {
+                name,
+                dims,
+                match_ms: med(&a.ms),
+                matches: med(&a.matches),
+                precision: mean(&a.prec),
+                precision_2_cells: mean(&a.prec2),
+                single_pass_t_m: med(&single.0),
+                single_pass_r_deg: med(&single.1),
+                localized: localized(own),
+                localized_refine_all: (!all.0.is_empty()).then(|| localized(all)),
+            }
         })
         .collect();
     Ok(Table3 {

@@ -3,13 +3,7 @@
 //! Everything in the synthetic world derives from one `u64` seed through these functions, so a
 //! scene is bit-identical across runs, thread counts and platforms (no `rand` version coupling).
 
-/// SplitMix64 finaliser: a bijective 64-bit mixer with good avalanche.
-#[inline]
-pub(crate) fn mix64(mut z: u64) -> u64 {
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
+use matloc_core::hash::{mix64, splitmix64_next};
 
 /// 32-bit hash of a lattice point; cheap enough for per-sample noise lookups.
 #[inline]
@@ -50,8 +44,7 @@ impl Rng {
     }
 
     pub(crate) fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        mix64(self.0)
+        splitmix64_next(&mut self.0)
     }
 
     /// Uniform in `[0, 1)`.
