@@ -251,8 +251,8 @@ mod tests {
         let c = super::read_config(&path).unwrap();
         let d = matloc_pipeline::build::MapConfig::default();
         assert_eq!(c.nerf.steps, 2000);
-        assert_eq!(c.encoder.train.steps, 1200);
-        assert_eq!(c.encoder.train.head_phase.steps, 6000);
+        assert_eq!(c.encoder.train.steps, 2400);
+        assert_eq!(c.encoder.train.head_phase.steps, 12000);
         assert_eq!(c.place, d.place);
         assert_eq!(c.localize, d.localize);
         assert_eq!(c.encoder.views_per_block, d.encoder.views_per_block);

@@ -47,6 +47,24 @@ pub fn median(values: &[f64]) -> Option<f64> {
     })
 }
 
+/// Pearson correlation of paired samples; `None` for fewer than two pairs, unequal lengths
+/// or a constant side (the correlation is undefined there).
+pub fn pearson(xs: &[f64], ys: &[f64]) -> Option<f64> {
+    if xs.len() != ys.len() || xs.len() < 2 {
+        return None;
+    }
+    let n = xs.len() as f64;
+    let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+    for (x, y) in xs.iter().zip(ys) {
+        sxy += (x - mx) * (y - my);
+        sxx += (x - mx) * (x - mx);
+        syy += (y - my) * (y - my);
+    }
+    let den = (sxx * syy).sqrt();
+    (den > 0.0 && den.is_finite()).then(|| sxy / den)
+}
+
 /// `median(a) − median(b)` for paired samples and its bootstrap confidence interval.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PairedDifference {
@@ -233,6 +251,20 @@ mod tests {
             }
         }
         img
+    }
+
+    #[test]
+    fn pearson_of_affine_and_degenerate_inputs() {
+        let x = [1.0, 2.0, 4.0, 7.0];
+        let up: Vec<f64> = x.iter().map(|v| 3.0 * v - 1.0).collect();
+        let down: Vec<f64> = x.iter().map(|v| -0.5 * v + 2.0).collect();
+        assert!((pearson(&x, &up).unwrap() - 1.0).abs() < 1e-12);
+        assert!((pearson(&x, &down).unwrap() + 1.0).abs() < 1e-12);
+        let r = pearson(&[1.0, 2.0, 3.0], &[1.0, 3.0, 2.0]).unwrap();
+        assert!((r - 0.5).abs() < 1e-12);
+        assert_eq!(pearson(&x, &[5.0; 4]), None);
+        assert_eq!(pearson(&[1.0], &[2.0]), None);
+        assert_eq!(pearson(&x, &up[..3]), None);
     }
 
     #[test]

@@ -143,21 +143,9 @@ fn correlations(views: &[View], queries: &[FeatureMap], dims: &[usize]) -> Vec<f
                     }
                 }
             }
-            pearson(&xs, &ys)
+            matloc_core::metrics::pearson(&xs, &ys).unwrap_or(0.0)
         })
         .collect()
-}
-
-fn pearson(xs: &[f64], ys: &[f64]) -> f64 {
-    let n = xs.len().max(1) as f64;
-    let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
-    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
-    for (x, y) in xs.iter().zip(ys) {
-        sxy += (x - mx) * (y - my);
-        sxx += (x - mx) * (x - mx);
-        syy += (y - my) * (y - my);
-    }
-    sxy / (sxx * syy).sqrt().max(1e-12)
 }
 
 impl View {

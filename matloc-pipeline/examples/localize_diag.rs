@@ -176,28 +176,12 @@ fn main() {
         )
         .expect("render");
         let enc = blk.encoder.encode(&image).expect("encode");
-        let mut corr = Vec::new();
-        for &d in &blk.dims {
-            let (mut xs, mut ys) = (Vec::new(), Vec::new());
-            for i in 0..target.cols * target.rows {
-                if target.accumulation[i] > 0.5 {
-                    xs.push(target.features[i * 47 + d] as f64);
-                    ys.push(enc.pixel(i % target.cols, i / target.cols)[d] as f64);
-                }
-            }
-            let n = xs.len() as f64;
-            let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
-            let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
-            for (x, y) in xs.iter().zip(&ys) {
-                sxy += (x - mx) * (y - my);
-                sxx += (x - mx) * (x - mx);
-                syy += (y - my) * (y - my);
-            }
-            corr.push(sxy / (sxx * syy).sqrt().max(1e-12));
-        }
+        let corr = matloc_pipeline::diagnostics::encoder_correlation(&target, &enc, &blk.dims);
         println!(
             "  encoder corr per selected dim {:?}",
-            corr.iter().map(|c| format!("{c:.2}")).collect::<Vec<_>>()
+            corr.iter()
+                .map(|c| c.map_or("-".into(), |c| format!("{c:.2}")))
+                .collect::<Vec<_>>()
         );
         ok_place += usize::from(good(e1));
         ok_accepted += usize::from(good(e1) && r1.confidence >= accept);

@@ -41,3 +41,33 @@ impl QueryFeatureEncoder for RenderedQueryEncoder<'_> {
             .map_err(|_| PipelineError::Internal("rendered feature map has the wrong size"))
     }
 }
+
+/// Per-dim Pearson correlation between an encoder's output and features rendered on the same
+/// grid, over the cells the render hit (accumulation > 0.5): how well the encoder predicts
+/// each field dim. `target` holds `target.dims` channels and `encoded` at least as many, in the
+/// same order; `None` for a dim whose correlation is undefined (constant, or fewer than two
+/// cells) and for every dim when the grids differ in size.
+pub fn encoder_correlation(
+    target: &matloc_match::gt::RenderedView,
+    encoded: &FeatureMap,
+    dims: &[usize],
+) -> Vec<Option<f64>> {
+    let same_grid = encoded.width() == target.cols && encoded.height() == target.rows;
+    dims.iter()
+        .map(|&d| {
+            if !same_grid || d >= target.dims || d >= encoded.channels() {
+                return None;
+            }
+            let (mut xs, mut ys) = (Vec::new(), Vec::new());
+            for i in 0..target.cols * target.rows {
+                if target.accumulation[i] > 0.5 {
+                    xs.push(f64::from(target.features[i * target.dims + d]));
+                    ys.push(f64::from(
+                        encoded.pixel(i % target.cols, i / target.cols)[d],
+                    ));
+                }
+            }
+            matloc_core::metrics::pearson(&xs, &ys)
+        })
+        .collect()
+}
