@@ -157,10 +157,12 @@ pub struct LocalizeOptions {
     /// With a selection smaller than the encoder's dims, render every encoded dim and refine
     /// feature-metrically on all of them, matching still on the selection only (maps loaded
     /// through [`crate::stages::LoadedBlocks`]; `false`: render and refine on the selection).
-    /// Default `false`: on the fifteenth `small` demo map (Table 3, `matloc match eval --map`,
-    /// 90 starts at 3 m / 5°) it moved the median by noise only (greedy N_s = 5 0.443 →
-    /// 0.470 m, N_s = 10 0.423 → 0.411 m, positional 32 0.408 → 0.396 m) while rendering every
-    /// dim.
+    /// Default `true` (no effect on maps that match on all 47 dims, the build's default): over
+    /// seven maps (Table 3, `matloc match eval --map`, docs/BENCHMARKS.md session 15) refining
+    /// on all dims after matching on 5 selected ones lowered the median in 11 of 14
+    /// map/selector pairs (render-F1 and GT-pair greedy N_s = 5), significantly in 3 (up to
+    /// −0.18 m), never significantly raised it, and leaves it indistinguishable from matching
+    /// on all 47; matching on the 5 alone is significantly worse than 47 dims on `rubble`.
     pub refine_on_all_dims: bool,
 }
 
@@ -184,7 +186,7 @@ impl Default for LocalizeOptions {
             min_place_score: 0.01,
             max_log10_nfa: 0.0,
             max_accept_rotation_deg: 180.0,
-            refine_on_all_dims: false,
+            refine_on_all_dims: true,
         }
     }
 }
