@@ -53,20 +53,23 @@ pub fn encoder_correlation(
     dims: &[usize],
 ) -> Vec<Option<f64>> {
     let same_grid = encoded.width() == target.cols && encoded.height() == target.rows;
+    // The hit cells are the same for every dim: find them once.
+    let hits: Vec<usize> = (0..target.cols * target.rows)
+        .filter(|&i| target.accumulation[i] > 0.5)
+        .collect();
     dims.iter()
         .map(|&d| {
             if !same_grid || d >= target.dims || d >= encoded.channels() {
                 return None;
             }
-            let (mut xs, mut ys) = (Vec::new(), Vec::new());
-            for i in 0..target.cols * target.rows {
-                if target.accumulation[i] > 0.5 {
-                    xs.push(f64::from(target.features[i * target.dims + d]));
-                    ys.push(f64::from(
-                        encoded.pixel(i % target.cols, i / target.cols)[d],
-                    ));
-                }
-            }
+            let xs: Vec<f64> = hits
+                .iter()
+                .map(|&i| f64::from(target.features[i * target.dims + d]))
+                .collect();
+            let ys: Vec<f64> = hits
+                .iter()
+                .map(|&i| f64::from(encoded.pixel(i % target.cols, i / target.cols)[d]))
+                .collect();
             matloc_core::metrics::pearson(&xs, &ys)
         })
         .collect()
