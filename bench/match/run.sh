@@ -11,9 +11,9 @@ DIMS="${2:-5,10,15,32,47}"
 REPS="${3:-15}"
 OUT="${MATCH_BENCH_OUT:-target-match/bench-match}"
 CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target-match}" \
-    cargo run --release -q -p matloc-match --no-default-features --example mnn_peer -- \
+    cargo run --release -q -p matloc-match --features faer --example mnn_peer -- \
     "$OUT" "$N" "$DIMS" "$REPS"
-# The encoder (burn) is not needed here, hence --no-default-features. Prefer bench/.venv (torch).
+# The faer GEMM baseline needs the `faer` feature. Prefer bench/.venv (torch).
 PY=python3
 [ -x bench/.venv/bin/python ] && PY=bench/.venv/bin/python
 "$PY" bench/match/compare.py "$OUT" 7

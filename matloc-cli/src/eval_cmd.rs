@@ -8,12 +8,12 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use matloc_core::Pose;
+use matloc_pipeline::LoadedMap;
 use matloc_pipeline::methods::{Method, MethodOptions, QueryResult, localize_with};
-use matloc_pipeline::stages::LoadedMap;
 use matloc_pipeline::{MethodSummary, QueryOutcome, accuracy_table, summarize, timing_table};
 
 use crate::localize_cmd::{Query, dataset_queries};
-use crate::plot::{self, Canvas};
+use crate::plot;
 use crate::progress;
 
 /// Arguments of `matloc eval`.
@@ -140,213 +140,126 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Result<()> {
-    matloc_data::fsutil::write_atomic(path, bytes)
+    matloc_core::fsutil::write_atomic(path, bytes)
         .with_context(|| format!("writing {}", path.display()))
 }
 
 fn spaced(v: &[Query], n: usize) -> Vec<&Query> {
-    if n >= v.len() {
-        return v.iter().collect();
-    }
-    let step = v.len() as f64 / n as f64;
-    (0..n)
-        .map(|k| &v[((k as f64 + 0.5) * step) as usize])
+    matloc_core::subset::evenly_spaced(v.len(), n)
+        .into_iter()
+        .map(|i| &v[i])
         .collect()
 }
 
 fn center(p: &Pose) -> [f64; 3] {
-    let c = p.inverse().translation.vector;
-    [c.x, c.y, c.z]
+    matloc_core::pose::camera_center(p).coords.into()
 }
 
-/// Cumulative distribution of translation error (log axis, 1 cm – 100 m) per method.
+/// Translation and rotation error CDFs per method; refused queries never count as localized.
 fn plot_cdf(runs: &[MethodRun], path: &Path) -> Result<()> {
-    let (w, h) = (900u32, 560u32);
-    let mut c = Canvas::new(w, h, plot::WHITE);
-    c.text_px(
-        20.0,
-        12.0,
-        "translation error CDF (refused = never)",
-        plot::BLACK,
-        2,
-    );
-    let area = [70.0, 50.0, w as f64 - 100.0, h as f64 - 120.0];
-    let (lo, hi) = (-2.0f64, 2.0f64);
-    c.set_view(area, [lo, 0.0], [hi, 1.0], false);
-    for k in [-2, -1, 0, 1, 2] {
-        let x = k as f64;
-        c.line([x, 0.0], [x, 1.0], [225, 225, 225], 1.0);
-        let (px, py) = c.to_px(x, 0.0);
-        let label = match k {
-            -2 => "1 CM".to_string(),
-            -1 => "10 CM".to_string(),
-            0 => "1 M".to_string(),
-            1 => "10 M".to_string(),
-            _ => "100 M".to_string(),
-        };
-        c.text_px(px - 12.0, py + 6.0, &label, plot::BLACK, 1);
-    }
-    for f in [0.25, 0.5, 0.75, 1.0] {
-        c.line([lo, f], [hi, f], [225, 225, 225], 1.0);
-        let (px, py) = c.to_px(lo, f);
-        c.text_px(
-            px - 40.0,
-            py - 3.0,
-            &format!("{:.0} %", 100.0 * f),
-            plot::BLACK,
-            1,
-        );
-    }
-    for (i, r) in runs.iter().enumerate() {
-        let mut e: Vec<f64> = r
-            .outcomes
-            .iter()
-            .filter_map(|o| o.errors().map(|e| e.0))
-            .collect();
-        e.sort_by(f64::total_cmp);
-        let n = r.outcomes.len().max(1) as f64;
-        let col = plot::palette(i);
-        let mut prev = [lo, 0.0];
-        for (k, v) in e.iter().enumerate() {
-            let x = v.max(1e-2).log10().min(hi);
-            let y = (k + 1) as f64 / n;
-            c.line(prev, [x, prev[1]], col, 2.0);
-            c.line([x, prev[1]], [x, y], col, 2.0);
-            prev = [x, y];
-        }
-        c.line(prev, [hi, prev[1]], col, 2.0);
-        let ly = 60.0 + 16.0 * i as f64;
-        c.fill_rect_px(area[0] + 10.0, ly, 12.0, 8.0, col, 1.0);
-        c.text_px(area[0] + 28.0, ly, r.method.name(), plot::BLACK, 1);
-    }
-    c.frame(plot::BLACK, "log10 m");
-    c.save_png(path)
+    let errors: Vec<(Vec<f64>, Vec<f64>)> = runs
+        .iter()
+        .map(|r| r.outcomes.iter().filter_map(|o| o.errors()).unzip())
+        .collect();
+    let series: Vec<plot::ErrorSeries<'_>> = runs
+        .iter()
+        .zip(&errors)
+        .map(|(r, (t, rot))| plot::ErrorSeries {
+            name: r.method.name(),
+            translation_m: t,
+            rotation_deg: rot,
+            queries: r.outcomes.len(),
+        })
+        .collect();
+    plot::error_cdfs(
+        path,
+        "Localization error CDF (refused queries never count as localized)",
+        &series,
+    )
 }
 
-/// Top-down map: training cameras, ground-truth query positions and each method's estimates.
+/// Top-down map: training cameras, block bounds, ground-truth query positions and each method's
+/// estimates joined to their truth.
 fn plot_topdown(
     runs: &[MethodRun],
     dataset: &matloc_data::Dataset,
     map: &LoadedMap,
     path: &Path,
 ) -> Result<()> {
-    let (w, h) = (900u32, 900u32);
-    let mut c = Canvas::new(w, h, plot::WHITE);
-    c.text_px(
-        20.0,
-        12.0,
-        "top-down: truth (black) and estimates",
-        plot::BLACK,
-        2,
-    );
-    let mut min = [f64::INFINITY; 2];
-    let mut max = [f64::NEG_INFINITY; 2];
-    for f in &dataset.frames {
-        let p = f.center();
-        for k in 0..2 {
-            min[k] = min[k].min(p[k]);
-            max[k] = max[k].max(p[k]);
-        }
-    }
-    for b in &map.partition.blocks {
-        for k in 0..2 {
-            min[k] = min[k].min(b.bounds.min[k]);
-            max[k] = max[k].max(b.bounds.max[k]);
-        }
-    }
-    c.set_view(
-        [40.0, 50.0, w as f64 - 80.0, h as f64 - 110.0],
-        min,
-        max,
-        true,
-    );
-    for b in &map.partition.blocks {
-        c.rect(
-            [b.bounds.min[0], b.bounds.min[1]],
-            [b.bounds.max[0], b.bounds.max[1]],
-            plot::palette(b.id + 6),
-            1.0,
-        );
-    }
-    for f in dataset.split(matloc_data::Split::Train) {
-        let p = f.center();
-        c.point(p[0], p[1], 2.0, plot::GREY, 0.6);
-    }
-    for (i, r) in runs.iter().enumerate() {
-        let col = plot::palette(i);
-        for o in &r.outcomes {
-            let g = center(&o.cam_from_world_gt);
-            if let Some(est) = &o.cam_from_world_est {
-                let e = center(est);
-                c.line([g[0], g[1]], [e[0], e[1]], col, 1.0);
-                c.point(e[0], e[1], 3.0, col, 0.9);
-            }
-        }
-        let ly = 60.0 + 16.0 * i as f64;
-        c.fill_rect_px(w as f64 - 200.0, ly, 12.0, 8.0, col, 1.0);
-        c.text_px(w as f64 - 182.0, ly, r.method.name(), plot::BLACK, 1);
-    }
-    if let Some(r) = runs.first() {
-        for o in &r.outcomes {
-            let g = center(&o.cam_from_world_gt);
-            c.point(g[0], g[1], 4.0, plot::BLACK, 1.0);
-        }
-    }
-    c.frame(plot::BLACK, "m");
-    c.save_png(path)
+    let xy = |p: [f64; 3]| [p[0], p[1]];
+    let train: Vec<[f64; 2]> = dataset
+        .split(matloc_data::Split::Train)
+        .map(|f| {
+            let c = f.center();
+            [c.x, c.y]
+        })
+        .collect();
+    let boxes: Vec<plot::MapBox> = map
+        .partition
+        .blocks
+        .iter()
+        .map(|b| plot::MapBox {
+            min: [b.bounds.min[0], b.bounds.min[1]],
+            max: [b.bounds.max[0], b.bounds.max[1]],
+            color: b.id + 6,
+            label: format!("block {}", b.id),
+        })
+        .collect();
+    let truth: Vec<[f64; 2]> = runs.first().map_or_else(Vec::new, |r| {
+        r.outcomes
+            .iter()
+            .map(|o| xy(center(&o.cam_from_world_gt)))
+            .collect()
+    });
+    let pairs: Vec<Vec<([f64; 2], [f64; 2])>> = runs
+        .iter()
+        .map(|r| {
+            r.outcomes
+                .iter()
+                .filter_map(|o| {
+                    let est = o.cam_from_world_est.as_ref()?;
+                    Some((xy(center(&o.cam_from_world_gt)), xy(center(est))))
+                })
+                .collect()
+        })
+        .collect();
+    let estimates: Vec<plot::EstimateSeries<'_>> = runs
+        .iter()
+        .zip(&pairs)
+        .map(|(r, p)| plot::EstimateSeries {
+            name: r.method.name(),
+            pairs: p,
+        })
+        .collect();
+    plot::topdown(
+        path,
+        &plot::TopDown {
+            title: "Top-down: query ground truth and each method's estimates",
+            train_cameras: &train,
+            boxes: &boxes,
+            boxes_legend: "sub-NeRF block bounds",
+            truth: &truth,
+            estimates: &estimates,
+        },
+    )
 }
 
 /// Mean seconds per query and stage, one stacked bar per method.
 fn plot_stage_times(runs: &[MethodRun], path: &Path) -> Result<()> {
-    let (w, h) = (900u32, 120 + 60 * runs.len() as u32);
-    let mut c = Canvas::new(w, h, plot::WHITE);
-    c.text_px(
-        20.0,
-        12.0,
-        "mean time per query by stage (s)",
-        plot::BLACK,
-        2,
-    );
-    let max_t = runs
+    let bars: Vec<plot::StackedBar<'_>> = runs
         .iter()
-        .map(|r| {
-            r.summary
-                .stage_mean_seconds
-                .iter()
-                .map(|s| s.1)
-                .sum::<f64>()
+        .map(|r| plot::StackedBar {
+            label: r.method.name(),
+            parts: &r.summary.stage_mean_seconds,
         })
-        .fold(1e-3, f64::max);
-    let mut stage_names: Vec<String> = Vec::new();
-    for r in runs {
-        for (s, _) in &r.summary.stage_mean_seconds {
-            if !stage_names.contains(s) {
-                stage_names.push(s.clone());
-            }
-        }
-    }
-    let left = 160.0;
-    let width = w as f64 - left - 40.0;
-    for (i, r) in runs.iter().enumerate() {
-        let y = 50.0 + 60.0 * i as f64;
-        c.text_px(10.0, y + 10.0, r.method.name(), plot::BLACK, 1);
-        let mut x = left;
-        for (s, t) in &r.summary.stage_mean_seconds {
-            let k = stage_names.iter().position(|n| n == s).unwrap_or(0);
-            let bw = width * t / max_t;
-            c.fill_rect_px(x, y, bw, 30.0, plot::palette(k), 1.0);
-            x += bw;
-        }
-        let total: f64 = r.summary.stage_mean_seconds.iter().map(|s| s.1).sum();
-        c.text_px(x + 6.0, y + 10.0, &format!("{total:.3} S"), plot::BLACK, 1);
-    }
-    let mut x = 20.0;
-    let y = h as f64 - 30.0;
-    for (k, s) in stage_names.iter().enumerate() {
-        c.fill_rect_px(x, y, 12.0, 8.0, plot::palette(k), 1.0);
-        x += 16.0 + c.text_px(x + 16.0, y, s, plot::BLACK, 1) + 14.0;
-    }
-    c.save_png(path)
+        .collect();
+    plot::stage_bars(
+        path,
+        "Mean time per query by stage",
+        "mean time per query (s)",
+        "s",
+        &bars,
+    )
 }
 
 fn report(
@@ -424,7 +337,10 @@ fn report(
         writeln!(s)?;
     }
     writeln!(s, "## Plots\n")?;
-    writeln!(s, "- `error_cdf.png`: translation error CDF per method")?;
+    writeln!(
+        s,
+        "- `error_cdf.png`: translation and rotation error CDFs per method"
+    )?;
     writeln!(
         s,
         "- `topdown.png`: truth and estimated camera positions, block bounds"

@@ -8,8 +8,8 @@ use clap::Args;
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_core::{Camera, Distortion, Image, Pose};
 use matloc_data::{Dataset, Split};
+use matloc_pipeline::LoadedMap;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
-use matloc_pipeline::stages::LoadedMap;
 use serde::Deserialize;
 
 /// Arguments of `matloc localize`.
@@ -142,11 +142,7 @@ pub fn to_map_resolution(
 
 /// The camera the map was built from (its first training image's), if recorded.
 pub fn map_camera(map: &LoadedMap) -> Option<Camera> {
-    map.dir
-        .manifest()
-        .scene
-        .get("camera")
-        .and_then(|c| serde_json::from_value(c.clone()).ok())
+    map.camera()
 }
 
 fn frame_of<'a>(dataset: &'a Dataset, path: &Path) -> Option<&'a matloc_data::dataset::Frame> {

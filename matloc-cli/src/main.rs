@@ -5,6 +5,7 @@ mod dataset_cmd;
 mod demo_cmd;
 mod eval_cmd;
 mod localize_cmd;
+mod logging;
 mod map_cmd;
 mod match_cmd;
 mod nerf_cmd;
@@ -29,6 +30,14 @@ struct Cli {
     /// Hide progress bars.
     #[arg(long, global = true)]
     quiet: bool,
+    /// More log output on stderr (-v info, -vv debug, -vvv trace). Without it stderr shows
+    /// warnings when it is a terminal (the progress bars show progress) and info otherwise.
+    /// `RUST_LOG` (e.g. `matloc_pipeline=debug`) overrides both.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    /// Also write the log (info and above, or as `-v` / `RUST_LOG` say) to this file, appended.
+    #[arg(long, global = true, value_name = "FILE")]
+    log_file: Option<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -90,6 +99,10 @@ enum DatasetCommand {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Err(err) = logging::init(cli.verbose, cli.log_file.as_deref()) {
+        eprintln!("error: {err:#}");
+        return ExitCode::FAILURE;
+    }
     let result = match cli.command {
         Command::Synth { preset, out, seed } => synth_cmd::run(&preset, &out, seed, cli.quiet),
         Command::Dataset {
@@ -109,6 +122,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
+            tracing::debug!(error = ?err, "command failed");
             eprintln!("error: {err:#}");
             ExitCode::FAILURE
         }

@@ -8,7 +8,7 @@ use clap::{Args, Subcommand};
 use indicatif::{MultiProgress, ProgressBar};
 use matloc_pipeline::MapDir;
 use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
-use matloc_pipeline::stages::{
+use matloc_pipeline::map::layout::{
     CONFIDENCE_FILE, CalibrationRecord, SelectionRecord, required_stages, selection_file,
 };
 

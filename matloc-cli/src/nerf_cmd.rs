@@ -130,7 +130,7 @@ fn train(
         let step = NerfModel::load(out)
             .with_context(|| format!("reading the checkpoint in {}", out.display()))?
             .step();
-        eprintln!(
+        tracing::info!(
             "resuming from step {step} (checkpoint in {})",
             out.display()
         );
@@ -245,7 +245,7 @@ fn render(
             "median_depth_rel_error": v.median_depth_rel_error, "render_s": v.render_s,
         })).collect::<Vec<_>>(),
     });
-    matloc_data::fsutil::write_atomic(
+    matloc_core::fsutil::write_atomic(
         &out.join("metrics.json"),
         &serde_json::to_vec_pretty(&json)?,
     )?;

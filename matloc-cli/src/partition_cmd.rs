@@ -13,7 +13,7 @@ use matloc_partition::{
     samples_from_dataset, write_partition,
 };
 
-use crate::plot::{self, Canvas};
+use crate::plot;
 use crate::progress;
 
 /// Partition strategy on the command line.
@@ -243,7 +243,7 @@ pub fn run(args: &PartitionArgs, quiet: bool) -> Result<()> {
 }
 
 /// The top-down plot: sample points and block boxes coloured per block, camera positions with
-/// their viewing direction, and a legend.
+/// their viewing direction, and a legend with the block table.
 fn draw(
     partition: &Partition,
     train: &[PoseSamples],
@@ -251,98 +251,59 @@ fn draw(
     title: &str,
     path: &Path,
 ) -> Result<()> {
-    let (w, h) = (1100u32, 820u32);
-    let mut c = Canvas::new(w, h, plot::WHITE);
-    let area = [20.0, 40.0, 780.0, 740.0];
-    let sb = &partition.scene_bounds;
-    c.set_view(area, [sb.min[0], sb.min[1]], [sb.max[0], sb.max[1]], true);
-    c.text_px(20.0, 12.0, title, plot::BLACK, 2);
-
-    // Sample points: at most ~300k, lightly blended so density shows.
+    // Sample points: at most ~300k.
     let total: usize = train.iter().map(|p| p.points.len()).sum();
     let step = total.div_ceil(300_000).max(1);
+    let mut points = Vec::with_capacity(total / step + 1);
     for p in train {
         let block = match partition.method {
             Method::PoseAware => assign_pose(partition, p),
             Method::Grid => None,
         };
         for q in p.points.iter().step_by(step) {
-            let b = block.or_else(|| nearest_block(partition, q.x, q.y));
-            if let Some(b) = b {
-                c.point(q.x, q.y, 0.0, plot::palette(b), 0.25);
+            if let Some(b) = block.or_else(|| nearest_block(partition, q.x, q.y)) {
+                points.push(([q.x, q.y], b));
             }
         }
     }
-    for b in &partition.blocks {
-        let col = plot::palette(b.id);
-        c.rect(
-            [b.bounds.min[0], b.bounds.min[1]],
-            [b.bounds.max[0], b.bounds.max[1]],
-            col,
-            2.0,
-        );
-    }
-    let arrow = 0.04 * (sb.max[0] - sb.min[0]).max(sb.max[1] - sb.min[1]);
-    let cameras = |c: &mut Canvas, poses: &[PoseSamples], is_test: bool| {
-        for p in poses {
-            let o = p.center();
-            let d = p.viewing_direction();
-            let col = assign_pose(partition, p).map_or(plot::GREY, plot::palette);
-            c.line(
-                [o.x, o.y],
-                [o.x + d.x * arrow, o.y + d.y * arrow],
-                plot::BLACK,
-                1.0,
-            );
-            if is_test {
-                c.point(o.x, o.y, 5.0, plot::BLACK, 1.0);
-                c.point(o.x, o.y, 3.0, col, 1.0);
-            } else {
-                c.point(o.x, o.y, 3.5, col, 1.0);
-            }
+    let blocks: Vec<plot::PartitionBlock> = partition
+        .blocks
+        .iter()
+        .map(|b| plot::PartitionBlock {
+            id: b.id,
+            min: [b.bounds.min[0], b.bounds.min[1]],
+            max: [b.bounds.max[0], b.bounds.max[1]],
+            poses: b.pose_ids.len(),
+            volume_m3: b.sampling_volume_m3,
+        })
+        .collect();
+    let camera = |p: &PoseSamples, test: bool| {
+        let o = p.center();
+        let d = p.viewing_direction();
+        plot::CameraMark {
+            position: [o.x, o.y],
+            direction: [d.x, d.y],
+            block: assign_pose(partition, p),
+            test,
         }
     };
-    cameras(&mut c, train, false);
-    cameras(&mut c, test, true);
-    c.frame(plot::BLACK, "m");
-
-    // Legend.
-    let lx = 820.0;
-    let mut ly = 50.0;
-    c.text_px(lx, ly, "block  poses  box m3", plot::BLACK, 1);
-    ly += 14.0;
-    for b in partition.blocks.iter().take(40) {
-        c.fill_rect_px(lx, ly, 10.0, 8.0, plot::palette(b.id), 1.0);
-        let line = format!(
-            "{:>3} {:>6}  {:.2e}",
-            b.id,
-            b.pose_ids.len(),
-            b.sampling_volume_m3
-        );
-        c.text_px(lx + 16.0, ly, &line, plot::BLACK, 1);
-        ly += 12.0;
-    }
-    if partition.blocks.len() > 40 {
-        c.text_px(lx, ly, "...", plot::BLACK, 1);
-        ly += 12.0;
-    }
-    ly += 10.0;
-    c.disc_px(lx + 5.0, ly + 4.0, 3.5, plot::palette(0), 1.0);
-    c.text_px(lx + 16.0, ly, "train camera", plot::BLACK, 1);
-    ly += 14.0;
-    c.disc_px(lx + 5.0, ly + 4.0, 5.0, plot::BLACK, 1.0);
-    c.disc_px(lx + 5.0, ly + 4.0, 3.0, plot::palette(0), 1.0);
-    c.text_px(lx + 16.0, ly, "test camera", plot::BLACK, 1);
-    ly += 14.0;
-    c.line_px((lx, ly + 4.0), (lx + 10.0, ly + 4.0), plot::BLACK, 1.0);
-    c.text_px(lx + 16.0, ly, "view direction", plot::BLACK, 1);
-    ly += 14.0;
-    c.text_px(lx, ly, "dots: sample points", plot::BLACK, 1);
-    ly += 12.0;
-    c.text_px(lx, ly, "boxes: sub-NeRF bounds", plot::BLACK, 1);
-    ly += 12.0;
-    c.text_px(lx, ly, "colour = block (top-down)", plot::BLACK, 1);
-    c.save_png(path)
+    let cameras: Vec<plot::CameraMark> = train
+        .iter()
+        .map(|p| camera(p, false))
+        .chain(test.iter().map(|p| camera(p, true)))
+        .collect();
+    let sb = &partition.scene_bounds;
+    plot::partition_map(
+        path,
+        &plot::PartitionMap {
+            title,
+            scene_min: [sb.min[0], sb.min[1]],
+            scene_max: [sb.max[0], sb.max[1]],
+            points: &points,
+            blocks: &blocks,
+            cameras: &cameras,
+        },
+    )
 }
 
 fn nearest_block(partition: &Partition, x: f64, y: f64) -> Option<usize> {

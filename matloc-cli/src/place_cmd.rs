@@ -5,12 +5,11 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
-use matloc_core::metrics::translation_error_m;
 use matloc_core::{Camera, Image, Pose};
 use matloc_data::{Dataset, Split};
+use matloc_pipeline::eval::table4::{self, PlaceQueries};
 use matloc_place::{
-    GroupConfig, PlaceMethod, PlaceModel, PlacePredictor, PoseGroups, TrainConfig, view_overlap,
-    view_point_from_depth,
+    GroupConfig, PlaceMethod, PlaceModel, PoseGroups, TrainConfig, view_point_from_depth,
 };
 use rayon::prelude::*;
 
@@ -106,14 +105,14 @@ pub fn run(cmd: &PlaceCommand, quiet: bool) -> Result<()> {
     }
 }
 
-struct Frames {
-    images: Vec<Image<f32>>,
-    depths: Vec<Image<f32>>,
-    cameras: Vec<Camera>,
-    poses: Vec<Pose>,
-}
-
-fn load_frames(dataset: &Dataset, indices: &[usize], label: &str, quiet: bool) -> Result<Frames> {
+/// Images, depth maps, cameras and poses of the frames `indices` of `dataset`, loaded in
+/// parallel.
+fn load_frames(
+    dataset: &Dataset,
+    indices: &[usize],
+    label: &str,
+    quiet: bool,
+) -> Result<PlaceQueries> {
     let bar = progress::bar(indices.len() as u64, label, quiet);
     let loaded: Vec<(Image<f32>, Image<f32>, Camera, Pose)> = indices
         .par_iter()
@@ -129,17 +128,9 @@ fn load_frames(dataset: &Dataset, indices: &[usize], label: &str, quiet: bool) -
         })
         .collect::<Result<_>>()?;
     bar.finish_and_clear();
-    let mut out = Frames {
-        images: Vec::new(),
-        depths: Vec::new(),
-        cameras: Vec::new(),
-        poses: Vec::new(),
-    };
-    for (i, d, c, p) in loaded {
-        out.images.push(i);
-        out.depths.push(d);
-        out.cameras.push(c);
-        out.poses.push(p);
+    let mut out = PlaceQueries::default();
+    for (&frame, (image, depth, camera, pose)) in indices.iter().zip(loaded) {
+        out.push(frame, image, depth, camera, pose);
     }
     Ok(out)
 }
@@ -223,12 +214,6 @@ fn train(args: &TrainArgs, quiet: bool) -> Result<()> {
     Ok(())
 }
 
-/// Median of a non-empty list.
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     let dataset = matloc_data::read_dataset(&args.data)
         .with_context(|| format!("reading dataset {}", args.data.display()))?;
@@ -239,163 +224,35 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     }
     let test = load_frames(&dataset, &test_idx, "loading", quiet)?;
     let train_camera = dataset.frames[train_idx.first().copied().unwrap_or(0)].camera;
-    println!(
-        "{:<40} {:>10} {:>10} {:>8} {:>8} {:>12} {:>14}",
-        "model", "ms/query", "(median)", "top-1", "top-3", "co-visible", "coarse t (m)"
-    );
-    for dir in &args.model {
+    println!("{}", table4::table_header());
+    let mut oracle = None;
+    for (k, dir) in args.model.iter().enumerate() {
         let mut model =
             PlaceModel::load(dir).with_context(|| format!("loading {}", dir.display()))?;
-        // (refine within group, member weight, blend temperature)
-        let mut variants = vec![(false, 0.0, 0.0)];
-        if model.method() == PlaceMethod::ArcFace {
-            if args.refine {
-                variants.push((true, 0.0, 0.0));
-                for &t in &args.member_blend {
-                    variants.push((true, 0.0, t));
-                }
-            }
-            for &w in &args.member_weight {
-                variants.push((args.refine, w, 0.0));
-            }
+        if k == 0 {
+            oracle = table4::retrieval_oracle(&model, &test.poses);
         }
-        for (refine, w, blend) in variants {
-            model.set_refine_within_group(refine);
-            model.set_member_weight(w);
-            model.set_member_blend(blend);
-            let row = evaluate(&model, &test, &train_camera, args.min_overlap)?;
-            let name = format!(
-                "{:?}{}{}{} ({})",
-                model.method(),
-                if refine { "+member" } else { "" },
-                if w > 0.0 {
-                    format!(" w={w}")
-                } else {
-                    String::new()
-                },
-                if blend > 0.0 {
-                    format!(" blend={blend}")
-                } else {
-                    String::new()
-                },
-                short(dir)
-            );
-            println!(
-                "{:<40} {:>10.2} {:>10.2} {:>7.1}% {:>7.1}% {:>11.1}% {:>14.2}",
-                name,
-                row.mean_ms,
-                row.median_ms,
-                100.0 * row.top1,
-                100.0 * row.top3,
-                100.0 * row.covisible,
-                row.median_coarse_m
-            );
+        let variants = table4::variants(
+            model.method(),
+            args.refine,
+            &args.member_weight,
+            &args.member_blend,
+        );
+        for variant in variants {
+            let row = table4::evaluate(&mut model, variant, &test, &train_camera, args.min_overlap)
+                .with_context(|| format!("evaluating {}", dir.display()))?;
+            println!("{}", table4::table_line(&short(dir), &row));
         }
     }
-    println!(
-        "{} test views; co-visible = coarse pose sees >= {:.0} % of the ground the true view sees",
-        test.poses.len(),
-        100.0 * args.min_overlap
-    );
-    if let Some(dir) = args.model.first() {
-        let model = PlaceModel::load(dir)?;
-        if let Some(o) = retrieval_oracle(&model, &test.poses) {
-            println!(
-                "top-1 of perfect retrieval (the group of the training pose nearest each query, \
-                 centre distance + 20 m per radian of rotation): {:.1}%",
-                100.0 * o
-            );
-        }
+    println!("{}", table4::table_footer(test.len(), args.min_overlap));
+    if let Some(o) = oracle {
+        println!("{}", table4::oracle_line(o));
     }
     Ok(())
-}
-
-/// Fraction of `queries` whose group is the group of their nearest training pose: an upper
-/// bound for place recognition by image retrieval against the training views.
-fn retrieval_oracle(model: &PlaceModel, queries: &[Pose]) -> Option<f64> {
-    use matloc_core::metrics::rotation_error_deg;
-    let groups = model.groups();
-    let train = model.training_poses();
-    if queries.is_empty() || train.len() != groups.labels.len() {
-        return None;
-    }
-    let mut hits = 0usize;
-    for q in queries {
-        let truth = groups.assign(q)?;
-        let nearest = (0..train.len()).min_by(|&a, &b| {
-            let cost = |j: usize| {
-                translation_error_m(&train[j], q)
-                    + 20.0 * rotation_error_deg(&train[j], q).to_radians()
-            };
-            cost(a).total_cmp(&cost(b))
-        })?;
-        hits += usize::from(groups.labels[nearest] == truth);
-    }
-    Some(hits as f64 / queries.len() as f64)
 }
 
 fn short(p: &Path) -> String {
     p.file_name()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| p.display().to_string())
-}
-
-struct Row {
-    mean_ms: f64,
-    median_ms: f64,
-    top1: f64,
-    top3: f64,
-    covisible: f64,
-    /// Median distance of the top-1 coarse camera centre to the truth.
-    median_coarse_m: f64,
-}
-
-fn evaluate(
-    model: &PlaceModel,
-    test: &Frames,
-    coarse_camera: &Camera,
-    min_overlap: f64,
-) -> Result<Row> {
-    let groups = model.groups();
-    let (mut top1, mut top3, mut covis) = (0usize, 0usize, 0usize);
-    let mut times = Vec::new();
-    let mut coarse_m = Vec::new();
-    // One warm-up query so the first timing does not include lazy initialisation.
-    model.predict(&test.images[0], &test.cameras[0], 3)?;
-    for i in 0..test.poses.len() {
-        let t = Instant::now();
-        let h = model.predict(&test.images[i], &test.cameras[i], 3)?;
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-        let truth = groups
-            .assign(&test.poses[i])
-            .context("test pose cannot be assigned to a group")?;
-        top1 += usize::from(h.first().is_some_and(|x| x.group == truth));
-        top3 += usize::from(h.iter().any(|x| x.group == truth));
-        if let Some(best) = h.first() {
-            coarse_m.push(translation_error_m(&best.cam_from_world, &test.poses[i]));
-            let o = view_overlap(
-                &test.cameras[i],
-                &test.poses[i],
-                &test.depths[i],
-                coarse_camera,
-                &best.cam_from_world,
-                4,
-            );
-            covis += usize::from(o >= min_overlap);
-        }
-    }
-    let n = test.poses.len() as f64;
-    let mean_ms = times.iter().sum::<f64>() / n;
-    Ok(Row {
-        mean_ms,
-        median_ms: median(&mut times),
-        top1: top1 as f64 / n,
-        top3: top3 as f64 / n,
-        covisible: covis as f64 / n,
-        median_coarse_m: if coarse_m.is_empty() {
-            f64::NAN
-        } else {
-            median(&mut coarse_m)
-        },
-    })
 }

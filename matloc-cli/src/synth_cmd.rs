@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use matloc_data::dataset::Split;
-use matloc_data::synth::{self, SynthConfig};
+use matloc_synth::{Progress, SynthConfig, synthesize};
 
 use crate::progress;
 
@@ -18,7 +18,7 @@ pub fn run(preset: &str, out: &Path, seed: Option<u64>, quiet: bool) -> Result<(
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let bar = progress::bar(0, "rendering", quiet);
     let start = Instant::now();
-    let dataset = synth::synthesize(&config, out, &|p: synth::Progress| {
+    let dataset = synthesize(&config, out, &|p: Progress| {
         bar.set_length(p.total as u64);
         bar.set_position(p.done as u64);
     })

@@ -10,10 +10,12 @@
 //! - Geometry is `f64`; images and features are `f32`.
 
 pub mod camera;
+pub mod fsutil;
 pub mod hash;
 pub mod image;
 pub mod metrics;
 pub mod pose;
+pub mod subset;
 
 pub use camera::{Camera, CameraError, Distortion};
 pub use image::{FeatureMap, Image, ImageError};

@@ -29,7 +29,7 @@ use matloc_core::{Camera, CameraError, Distortion, Pose, PoseError};
 use thiserror::Error;
 
 use crate::dataset::{Dataset, Frame, SceneMetadata, Split};
-use crate::fsutil::write_atomic;
+use matloc_core::fsutil::write_atomic;
 
 /// The COLMAP camera models this crate reads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

@@ -8,7 +8,7 @@
 //!   which oblique aerial views exceed. 16-bit PNG depth (millimetres by default) is read too,
 //!   and can be written where its range suffices.
 //!
-//! Every file is written atomically through [`crate::fsutil`].
+//! Every file is written atomically through [`matloc_core::fsutil`].
 
 use std::fs;
 use std::io::{self, BufWriter, Write};
@@ -20,7 +20,7 @@ use matloc_core::{Camera, Image};
 use thiserror::Error;
 
 use crate::dataset::{Dataset, Frame};
-use crate::fsutil::write_atomic_with;
+use matloc_core::fsutil::write_atomic_with;
 
 /// Default scale of 16-bit PNG depth: one unit is a millimetre.
 pub const PNG_DEPTH_SCALE_M: f64 = 1e-3;
@@ -446,7 +446,7 @@ pub fn write_depth_npy(depth: &Image<f32>, path: &Path) -> Result<(), ImageLoadE
         });
     }
     let bytes = encode_npy_f32(depth.width(), depth.height(), depth.data());
-    crate::fsutil::write_atomic(path, &bytes).map_err(|e| io_error(path, e))
+    matloc_core::fsutil::write_atomic(path, &bytes).map_err(|e| io_error(path, e))
 }
 
 /// Serialises a `(height, width)` float32 array in `.npy` format version 1.0.

@@ -1,21 +1,19 @@
-//! Dataset formats and the procedural synthetic aerial world.
+//! Dataset formats: the in-memory dataset, its readers and writers, image and depth loading.
 //!
 //! - [`dataset`]: the in-memory [`Dataset`] every reader produces (frames with intrinsics,
 //!   `cam_from_world` pose, image and optional depth path, split).
 //! - [`nerfstudio`]: read/write nerfstudio `transforms.json`.
 //! - [`colmap`]: read COLMAP sparse models (text and binary).
 //! - [`images`]: load RGB images and depth maps, rescaling intrinsics to the loaded size.
-//! - [`synth`]: the deterministic synthetic aerial world, its renderer and survey capture.
-//! - [`fsutil`]: atomic file writes (temporary file + rename).
+//! - [`summary`]: [`read_dataset`] for any supported layout, and a validation summary.
+//! - [`error`]: [`DataError`], what any reader can fail with.
 
 pub mod colmap;
 pub mod dataset;
 pub mod error;
-pub mod fsutil;
 pub mod images;
 pub mod nerfstudio;
 pub mod summary;
-pub mod synth;
 
 pub use dataset::{Dataset, Frame, Split};
 pub use error::DataError;

@@ -34,8 +34,8 @@ use serde_json::{Map, Value};
 use thiserror::Error;
 
 use crate::dataset::{Dataset, Frame, SceneMetadata, Split};
-use crate::fsutil::write_atomic;
 use crate::images::{ImageLoadError, image_size};
+use matloc_core::fsutil::write_atomic;
 
 /// File name of the single-file layout.
 pub const TRANSFORMS_JSON: &str = "transforms.json";

@@ -3,10 +3,10 @@
 
 use matloc_core::Image;
 use matloc_data::Split;
-use matloc_data::synth::{SynthConfig, World, plan_survey};
 use matloc_keypoints::{
     GrayImage, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
 };
+use matloc_synth::{SynthConfig, World, plan_survey};
 use nalgebra::Point2;
 
 /// Two neighbouring training views of the `tiny` world at 320×240: ≥ 80 % of the mutual

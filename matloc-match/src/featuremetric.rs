@@ -17,7 +17,7 @@
 //! from central differences, interpolated like the map itself. The start must be within about
 //! a cell of the truth, so this follows PnP, it does not replace it.
 //!
-//! Measured (`examples/encoder_study.rs` with `ENC_ERRORS=1`, tiny preset, block-0 NeRF at
+//! Measured (`research/examples/encoder_study.rs` with `ENC_ERRORS=1`, tiny preset, block-0 NeRF at
 //! 1000 steps, the default learned encoder, 10 test views × 3 starts at 3 m / 5°): PnP alone
 //! median 1.58 m, 8/30 within 1 m; + this refinement 0.61 m, 23/30; rendered again at the
 //! refined pose and refined again 0.51 m. Alternatives that measured worse there: coarse

@@ -8,7 +8,7 @@
 //! - [`nn_tables_reference`]: the materialised matrix with plain loops and the same per-entry
 //!   arithmetic (a fused multiply-add chain over `k = 0..d`), so its tables equal the tiled ones
 //!   bit for bit. Tests use it as the oracle.
-//! - [`nn_tables_faer`]: faer's GEMM into a materialised matrix, then row and column scans: the
+//! - `nn_tables_faer` (`faer` feature): faer's GEMM into a materialised matrix, then row and column scans: the
 //!   straightforward baseline benchmarks compare against. Its summation order differs, so near
 //!   ties may resolve differently from the other two.
 //!
@@ -116,6 +116,7 @@ pub fn nn_tables_reference(a: &[f32], n: usize, b: &[f32], m: usize, d: usize) -
 }
 
 /// faer GEMM into a materialised `n × m` matrix, then row and column scans (baseline).
+#[cfg(feature = "faer")]
 pub fn nn_tables_faer(a: &[f32], n: usize, b: &[f32], m: usize, d: usize) -> NnTables {
     check_shapes(a, n, b, m, d);
     if n == 0 || m == 0 || d == 0 {

@@ -4,9 +4,9 @@
 //! pose, pose errors).
 
 use crate::error::MatchError;
-use crate::gt::{ViewRenderer, grid_size};
 use crate::mnn::Matcher;
 use crate::types::{Match2d3d, QueryFeatures, QueryGrid, RenderedPoints};
+use crate::view::{ViewRenderer, grid_size};
 use matloc_core::{Camera, FeatureMap, Pose};
 use matloc_pnp::{PnpError, PnpInput, PnpResult, PoseSolver};
 use nalgebra::{Point2, Point3};
@@ -19,7 +19,7 @@ use thiserror::Error;
 pub enum LocalizeError {
     /// Rendering the map failed.
     #[error("rendering the map failed: {0}")]
-    Render(crate::gt::RenderFailure),
+    Render(crate::view::RenderFailure),
     /// Matching failed (dimension mismatch, empty sides, ...).
     #[error(transparent)]
     Match(#[from] MatchError),

@@ -1,7 +1,9 @@
 //! Feature normalisation and the mutual-nearest-neighbour matcher.
 
 use crate::error::{MatchError, Side};
-use crate::kernel::{NnTables, nn_tables_faer, nn_tables_reference, nn_tables_tiled};
+#[cfg(feature = "faer")]
+use crate::kernel::nn_tables_faer;
+use crate::kernel::{NnTables, nn_tables_reference, nn_tables_tiled};
 use crate::subcell::{PreparedGrid, SubcellConfig, SubcellSide, interpolate_point, peak_offset};
 use crate::types::{Match2d3d, QueryFeatures, RenderedPoints};
 use crate::window::{Side as WindowSide, nn_tables_windowed};
@@ -49,7 +51,8 @@ pub enum MnnKernel {
     Tiled,
     /// Materialised matrix with plain loops (bit-identical to `Tiled`; tests).
     Reference,
-    /// Materialised matrix by faer GEMM (baseline).
+    /// Materialised matrix by faer GEMM (benchmark baseline; `faer` feature).
+    #[cfg(feature = "faer")]
     FaerGemm,
 }
 
@@ -310,6 +313,7 @@ pub fn tables(
     match kernel {
         MnnKernel::Tiled => nn_tables_tiled(query, n, map, m, d, track_second),
         MnnKernel::Reference => nn_tables_reference(query, n, map, m, d),
+        #[cfg(feature = "faer")]
         MnnKernel::FaerGemm => nn_tables_faer(query, n, map, m, d),
     }
 }

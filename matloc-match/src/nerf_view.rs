@@ -1,7 +1,7 @@
 //! [`ViewRenderer`] over a trained NeRF (`matloc-render`'s [`NerfModel`] and [`render_view`]):
 //! what pair generation and localization use on real maps.
 
-use crate::gt::{RenderFailure, RenderedView, ViewRenderer};
+use crate::view::{RenderFailure, RenderedView, ViewRenderer};
 use matloc_core::{Camera, Pose};
 use matloc_render::{NerfModel, PixelSet, RenderRequest, render_view};
 

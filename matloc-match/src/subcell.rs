@@ -17,7 +17,7 @@
 //!   whose neighbours are missing, invalid or across a depth discontinuity is left alone).
 //!
 //! Default: map side, quadratic fit. Measured on the tiny preset (10 test views, 3 m / 5° start,
-//! median start error 2.23 m, one render–match–PnP round, `examples/subcell_study.rs`): median
+//! median start error 2.23 m, one render–match–PnP round, `research/examples/subcell_study.rs`): median
 //! translation error 0.285 m without refinement → 0.163 m with exact query features, and
 //! 0.343 → 0.226 m with ±0.3 uniform noise on the query features (query-side refinement makes
 //! the noisy case worse, 0.48 m: it fits the noise). With the map re-rendered at the estimate

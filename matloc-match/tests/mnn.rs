@@ -1,7 +1,9 @@
 //! MNN matcher properties and kernel exactness.
 
 use matloc_core::FeatureMap;
-use matloc_match::kernel::{nn_tables_faer, nn_tables_reference, nn_tables_tiled};
+#[cfg(feature = "faer")]
+use matloc_match::kernel::nn_tables_faer;
+use matloc_match::kernel::{nn_tables_reference, nn_tables_tiled};
 use matloc_match::*;
 use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
@@ -137,6 +139,7 @@ proptest! {
     }
 }
 
+#[cfg(feature = "faer")]
 #[test]
 fn faer_baseline_agrees_on_generic_data() {
     let mut rng = ChaCha8Rng::seed_from_u64(7);

@@ -1,6 +1,5 @@
 use std::collections::HashMap;
 use std::fs;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
@@ -13,28 +12,12 @@ use crate::mlp::Linear;
 
 const LAYER_NAMES: [&str; 5] = ["geo.0", "geo.1", "colour.0", "colour.1", "colour.2"];
 
-/// Writes `bytes` to `path` atomically: `path.tmp`, fsync, rename, fsync the directory.
-pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FieldError> {
-    let io = |source| FieldError::Io {
+/// Writes `bytes` to `path` atomically ([`matloc_core::fsutil::write_atomic`]).
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FieldError> {
+    matloc_core::fsutil::write_atomic(path, bytes).map_err(|source| FieldError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = PathBuf::from(tmp);
-    {
-        let mut f = fs::File::create(&tmp).map_err(io)?;
-        f.write_all(bytes).map_err(io)?;
-        f.sync_all().map_err(io)?;
-    }
-    fs::rename(&tmp, path).map_err(io)?;
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        // Best effort: not every filesystem lets a directory be opened for sync.
-        if let Ok(d) = fs::File::open(dir) {
-            let _ = d.sync_all();
-        }
-    }
-    Ok(())
+    })
 }
 
 impl NerfactoField {

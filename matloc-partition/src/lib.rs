@@ -9,15 +9,17 @@
 //! nearest one, so one pose may need several sub-NeRFs. [`num_nerf`] counts them for any
 //! partition and pose, training or unseen.
 
+pub mod aabb;
 pub mod cluster;
 pub mod error;
 pub mod partition;
 pub mod samples;
 pub mod voxel;
 
+pub use aabb::Aabb;
 pub use error::PartitionError;
 pub use partition::{
-    Aabb, Block, GridConfig, GridPartitioner, Method, MethodConfig, PARTITION_VERSION, Partition,
+    Block, GridConfig, GridPartitioner, Method, MethodConfig, PARTITION_VERSION, Partition,
     Partitioner, PoseAwareConfig, PoseAwarePartitioner, assign_pose, coverage, mean_num_nerf,
     num_nerf, read_partition, write_partition,
 };

@@ -1,6 +1,6 @@
 //! Sample points of a pose: points along its camera rays up to the surface.
 //!
-//! The renderer's sampler is not wired in yet, so the surface distance of each ray comes from a
+//! The surface distance of each ray comes from a
 //! [`SurfaceSource`]: a depth map ([`DepthMapSurface`]) or anything that can cast rays (the
 //! synthetic world in tests). Rays are taken on a pixel grid (every `pixel_stride`-th pixel,
 //! centres at `+0.5`) and each contributes `points_per_ray` stratified points between `near` and

@@ -3,8 +3,8 @@
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
+use crate::aabb::Aabb;
 use crate::error::PartitionError;
-use crate::partition::Aabb;
 
 /// A regular grid of cubic voxels over an axis-aligned box; voxel ids are
 /// `ix + nx * (iy + ny * iz)`.

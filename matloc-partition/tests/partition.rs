@@ -2,13 +2,13 @@
 
 use matloc_core::pose::Pose;
 use matloc_data::Split;
-use matloc_data::synth::{self, SynthConfig, World};
 use matloc_partition::cluster::size_bounds;
 use matloc_partition::{
     GridConfig, GridPartitioner, Method, PartitionError, Partitioner, PoseAwareConfig,
     PoseAwarePartitioner, PoseSamples, SampleConfig, SurfaceRay, SurfaceSource, assign_pose,
     mean_num_nerf, num_nerf, read_partition, sample_pose, write_partition,
 };
+use matloc_synth::{SynthConfig, World, generate};
 use nalgebra::{Point2, Point3, Vector3};
 
 struct WorldSurface<'a>(&'a World);
@@ -28,7 +28,7 @@ struct Tiny {
 
 fn tiny() -> Tiny {
     let cfg = SynthConfig::preset("tiny").unwrap();
-    let (world, plan) = synth::generate(&cfg).unwrap();
+    let (world, plan) = generate(&cfg).unwrap();
     let surface = WorldSurface(&world);
     let sc = SampleConfig::default();
     let (mut train, mut test, mut train_centers) = (Vec::new(), Vec::new(), Vec::new());

@@ -2,7 +2,7 @@
 //! (A trained sub-NeRF is a `ViewRenderer` through `matloc_match::nerf_view::NerfViewRenderer`.)
 
 use matloc_core::{FeatureMap, Image};
-use matloc_match::encoder::{ENCODER_STRIDE, QueryEncoder};
+use matloc_encoder::{ENCODER_STRIDE, QueryEncoder};
 
 use crate::error::PipelineError;
 use crate::localizer::QueryFeatureEncoder;
@@ -16,7 +16,11 @@ impl QueryFeatureEncoder for QueryEncoder {
         ENCODER_STRIDE
     }
 
+    fn stats(&self) -> Option<&matloc_match::FeatureStats> {
+        Some(QueryEncoder::stats(self))
+    }
+
     fn encode(&self, image: &Image<f32>) -> Result<FeatureMap, PipelineError> {
-        QueryEncoder::encode(self, image).map_err(|e| PipelineError::Encoder(e.to_string()))
+        Ok(QueryEncoder::encode(self, image)?)
     }
 }

@@ -285,7 +285,7 @@ pub fn inerf(
     let mut it_total = 0u32;
     for &div in &stages_div {
         let div = div.max(1);
-        let cam = camera.downscaled(div).map_err(PipelineError::Camera)?;
+        let cam = camera.downscaled(div)?;
         let img = downscale_image(query, div as usize);
         let gray = GrayImage::from_image(&img);
         // Interest regions: keypoints of the query at this resolution.

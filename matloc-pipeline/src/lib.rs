@@ -1,22 +1,18 @@
-//! The MatLoc-NeRF pipeline as a library.
+//! The MatLoc-NeRF pipeline as a library, in one-way layers (each imports only those above):
 //!
-//! - [`manifest`]: the map directory — a versioned JSON manifest (config, scene frame, blocks,
-//!   stage records, file list with SHA-256 checksums) next to safetensors/JSON files, all
-//!   written atomically, validated on load.
-//! - [`localizer`]: the MatLoc [`Localizer`] over the stage traits, with top-k fallback,
-//!   iterative refinement and refusal.
-//! - [`build`], [`stages`]: map building stage by stage, resumable, and [`stages::LoadedMap`],
-//!   a built map loaded and validated.
-//! - [`baselines`]: rendered-RGB + keypoints, iNeRF and curriculum iNeRF from the same coarse
-//!   poses and map as MatLoc.
-//! - [`confidence`]: calibrated P(correct | inliers, inlier ratio, matches) and the refusal
-//!   rule.
-//! - [`render_select`]: feature selection scored by windowed matching (or a PnP pass) of
-//!   held-out views against renders, as the localizer uses the dims.
-//! - [`table3`]: the paper's Table 3 (feature sets × matching time, precision, pose error) on
-//!   a built map.
-//! - [`eval`]: per-method accuracy, refusal and timing summaries in the layout of the paper's
-//!   Tables 1 and 2, and their markdown rendering.
+//! - [`error`]: [`PipelineError`], with the stage crates' typed errors as sources.
+//! - [`gt`]: ground-truth 2D–3D pairs from perturbed training poses (paper 3.1.2), the input of
+//!   encoder training and feature selection.
+//! - [`localizer`]: the MatLoc [`Localizer`] over the stage traits (top-k fallback, iterative
+//!   refinement, calibrated confidence and refusal), its [`LocalizeOptions`] and
+//!   [`localizer::confidence`].
+//! - [`config`]: [`MapConfig`], everything that defines a map build.
+//! - [`map`]: the map directory (manifest, checksums, file layout) and [`LoadedMap`], a built
+//!   map loaded behind the stage traits.
+//! - [`build`]: map building, one file per stage, resumable.
+//! - [`baselines`], [`methods`]: rendered-RGB + keypoints, iNeRF and curriculum iNeRF from the
+//!   same coarse poses and map as MatLoc, and one entry point for every method.
+//! - [`eval`]: the paper's Tables 1–4 and diagnostics.
 //!
 //! The command-line tool (`matloc`) only parses arguments, draws progress and plots, and calls
 //! into this crate.
@@ -24,25 +20,24 @@
 pub mod adapters;
 pub mod baselines;
 pub mod build;
-pub mod confidence;
-pub mod diagnostics;
+pub mod config;
 mod error;
 pub mod eval;
+pub mod gt;
 pub mod localizer;
-pub mod manifest;
+pub mod map;
 pub mod methods;
-pub mod render_select;
-pub mod stages;
-pub mod table3;
 
+pub use config::MapConfig;
 pub use error::PipelineError;
 pub use eval::{
     MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
     timing_table,
 };
+pub use localizer::options::LocalizeOptions;
 pub use localizer::{
-    HypothesisReport, Localization, LocalizeOptions, Localizer, LocalizerBlock, QueryFeatureEncoder,
+    FixedPlace, HypothesisReport, Localization, Localizer, LocalizerBlock, QueryFeatureEncoder,
 };
-pub use manifest::{
-    BlockEntry, FileEntry, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,
+pub use map::{
+    BlockEntry, FileEntry, LoadedMap, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,
 };

@@ -8,8 +8,6 @@ use std::str::FromStr;
 use std::time::Instant;
 
 use matloc_core::{Camera, Image, Pose};
-use matloc_place::PlacePredictor;
-use matloc_pnp::LoRansacPnp;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -17,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use crate::baselines::{InerfOptions, KeypointBaselineOptions, inerf, rgb_keypoints};
 use crate::error::PipelineError;
 use crate::localizer::HypothesisReport;
-use crate::stages::LoadedMap;
+use crate::map::load::LoadedMap;
 
 /// A localization method.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -112,8 +110,7 @@ pub struct MethodOptions {
 }
 
 fn center(p: &Pose) -> [f64; 3] {
-    let c = p.inverse().translation.vector;
-    [c.x, c.y, c.z]
+    matloc_core::pose::camera_center(p).coords.into()
 }
 
 /// Localizes `image` (taken with `camera`) with `method` on `map`.
@@ -125,9 +122,8 @@ pub fn localize_with(
     camera: &Camera,
     options: &MethodOptions,
 ) -> Result<QueryResult, PipelineError> {
-    let solver = LoRansacPnp::default();
     if method == Method::Matloc {
-        let loc = map.localizer(&solver).localize(image, camera)?;
+        let loc = map.localizer().localize(image, camera)?;
         let passes = loc.hypotheses.iter().map(|h| h.passes as u32).sum::<u32>();
         return Ok(QueryResult {
             name: name.to_string(),
@@ -145,14 +141,9 @@ pub fn localize_with(
     }
     let start = Instant::now();
     let t = Instant::now();
-    let hyps = map
-        .place
-        .predict(image, camera, 1)
-        .map_err(|e| PipelineError::Place(e.to_string()))?;
+    let hyps = map.place.predict(image, camera, 1)?;
     let place_s = t.elapsed().as_secs_f64();
-    let hyp = hyps
-        .first()
-        .ok_or_else(|| PipelineError::Place("no place hypothesis".into()))?;
+    let hyp = hyps.first().ok_or(PipelineError::NoPlaceHypothesis)?;
     let block = hyp.block.unwrap_or(0);
     let model = map
         .nerf(block)

@@ -2,7 +2,7 @@
 
 use std::fs;
 
-use matloc_pipeline::manifest::{MANIFEST_FILE, MANIFEST_VERSION};
+use matloc_pipeline::map::manifest::{MANIFEST_FILE, MANIFEST_VERSION};
 use matloc_pipeline::{BlockEntry, MapDir, MapError};
 use serde_json::json;
 

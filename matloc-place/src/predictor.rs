@@ -769,7 +769,7 @@ impl PlaceModel {
         let bytes = store
             .get_bytes()
             .map_err(|e| weights_err(format!("{e:?}")))?;
-        matloc_data::fsutil::write_atomic(&wpath, &bytes).map_err(|source| PlaceError::Io {
+        matloc_core::fsutil::write_atomic(&wpath, &bytes).map_err(|source| PlaceError::Io {
             path: wpath.clone(),
             source,
         })?;
@@ -788,7 +788,7 @@ impl PlaceModel {
             path: jpath.clone(),
             source,
         })?;
-        matloc_data::fsutil::write_atomic(&jpath, &json).map_err(|source| PlaceError::Io {
+        matloc_core::fsutil::write_atomic(&jpath, &json).map_err(|source| PlaceError::Io {
             path: jpath,
             source,
         })

@@ -2,11 +2,11 @@
 
 use matloc_core::{Camera, Image, Pose};
 use matloc_data::Split;
-use matloc_data::synth::{self, RenderOptions, SynthConfig};
 use matloc_place::{
     ExtraViews, GroupConfig, PlaceError, PlaceMethod, PlaceModel, PlacePredictor, PoseGroups,
     TrainConfig, view_overlap, view_point_from_depth,
 };
+use matloc_synth::{RenderOptions, SynthConfig, generate};
 
 struct View {
     image: Image<f32>,
@@ -24,7 +24,7 @@ struct Scene {
 fn scene() -> Scene {
     let mut cfg = SynthConfig::preset("tiny").unwrap();
     cfg.survey.test_views = 40;
-    let (world, plan) = synth::generate(&cfg).unwrap();
+    let (world, plan) = generate(&cfg).unwrap();
     let opts = RenderOptions {
         edge_samples: 1,
         ..RenderOptions::default()

@@ -106,6 +106,10 @@ pub struct PnpResult {
 pub trait PoseSolver {
     /// Solves for `cam_from_world`; the RNG makes the result reproducible.
     fn solve(&self, input: &PnpInput<'_>, rng: &mut dyn RngCore) -> Result<PnpResult, PnpError>;
+    /// Matches in the minimal sample a pose hypothesis is fitted to (3 for P3P): a consensus
+    /// is judged beyond chance only for the inliers beyond these
+    /// ([`crate::significance::log10_nfa`]).
+    fn minimal_sample(&self) -> usize;
 }
 
 /// Options of [`LoRansacPnp`].
@@ -292,6 +296,10 @@ fn validate_options(options: &PnpOptions) -> Result<(), PnpError> {
 }
 
 impl PoseSolver for LoRansacPnp {
+    fn minimal_sample(&self) -> usize {
+        3
+    }
+
     fn solve(&self, input: &PnpInput<'_>, rng: &mut dyn RngCore) -> Result<PnpResult, PnpError> {
         let start = Instant::now();
         let options = effective_options(&self.options, input);
@@ -427,6 +435,11 @@ pub struct EpnpPnp {
 }
 
 impl PoseSolver for EpnpPnp {
+    /// EPnP needs four matches.
+    fn minimal_sample(&self) -> usize {
+        4
+    }
+
     fn solve(&self, input: &PnpInput<'_>, _rng: &mut dyn RngCore) -> Result<PnpResult, PnpError> {
         let start = Instant::now();
         let options = effective_options(&self.options, input);

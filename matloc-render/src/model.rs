@@ -490,7 +490,7 @@ pub(crate) fn read(path: &Path) -> Result<Vec<u8>, RenderError> {
 }
 
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RenderError> {
-    matloc_data::fsutil::write_atomic(path, bytes).map_err(|source| RenderError::Io {
+    matloc_core::fsutil::write_atomic(path, bytes).map_err(|source| RenderError::Io {
         path: path.to_path_buf(),
         source,
     })

@@ -2,7 +2,7 @@
 //!
 //! # The BIP as printed, and why it picks one dimension
 //!
-//! Paper Eq. (selection), with the absolute difference DESIGN.md asks for:
+//! Paper Eq. (selection), with the absolute difference |F2d − F3d| as the per-pair cost:
 //!
 //! ```text
 //! minimise   J(s) = (1 / Σ_d s_d) · Σ_d s_d · c_d,     c_d = Σ_{(i,j) ∈ Pairs} |F2d_{i,d} − F3d_{j,d}|

@@ -89,18 +89,6 @@ impl PairSet {
         Ok(self)
     }
 
-    /// Ground-truth pairs from `matloc-match`'s generator: query-side features (rendered at the
-    /// true pose, i.e. the encoder's targets) against map-side features (rendered at the
-    /// perturbed pose), grouped by render. `query_features` replaces the query side, e.g. with
-    /// the encoder's output at the pairs' query cells (`P × dims`).
-    pub fn from_gt(
-        gt: &matloc_match::gt::GtPairSet,
-        query_features: Option<Vec<f32>>,
-    ) -> Result<Self, SelectError> {
-        let f2d = query_features.unwrap_or_else(|| gt.query_features.clone());
-        Self::new(gt.dims(), f2d, gt.map_features.clone())?.with_groups(gt.render.clone())
-    }
-
     /// Group of every pair, if assigned.
     pub fn groups(&self) -> Option<&[u32]> {
         self.groups.as_deref()

@@ -1,0 +1,203 @@
+//! Query encoder: learns a colour-to-feature mapping, checkpoints round-trip, typed errors.
+
+use matloc_core::Image;
+use matloc_encoder::*;
+use matloc_match::FeatureStats;
+use matloc_match::RenderedView;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Blocky random images; the target of a 4 × 4 cell is a fixed linear map of its mean colour.
+fn samples(n: usize, size: usize, seed: u64) -> Vec<EncoderSample> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let g = size / 4;
+    (0..n)
+        .map(|_| {
+            let mut img = Image::new(size, size, 3);
+            let cols: Vec<[f32; 3]> = (0..g * g)
+                .map(|_| [rng.random(), rng.random(), rng.random()])
+                .collect();
+            for y in 0..size {
+                for x in 0..size {
+                    img.pixel_mut(x, y)
+                        .copy_from_slice(&cols[(y / 4) * g + x / 4]);
+                }
+            }
+            let mut features = Vec::new();
+            for c in &cols {
+                features.extend_from_slice(&[
+                    c[0] - c[1],
+                    c[1] + c[2],
+                    2.0 * c[2] - 1.0,
+                    c[0] + 0.5 * c[1] - c[2],
+                ]);
+            }
+            EncoderSample {
+                image: img,
+                target: RenderedView {
+                    cols: g,
+                    rows: g,
+                    dims: 4,
+                    features,
+                    depth_z: vec![10.0; g * g],
+                    accumulation: vec![1.0; g * g],
+                },
+            }
+        })
+        .collect()
+}
+
+fn stats_of(s: &[EncoderSample]) -> FeatureStats {
+    let all: Vec<f32> = s.iter().flat_map(|x| x.target.features.clone()).collect();
+    FeatureStats::from_features(&all, 4)
+}
+
+fn small_config(steps: usize) -> EncoderTrainConfig {
+    EncoderTrainConfig {
+        net: EncoderConfig {
+            width: 16,
+            dilations: vec![1],
+            head_hidden: vec![16],
+        },
+        steps,
+        batch: 4,
+        learning_rate: 1e-2,
+        nce_cells: 32,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn learns_and_roundtrips() {
+    let s = samples(8, 32, 1);
+    let stats = stats_of(&s);
+    let mut losses = Vec::new();
+    let enc = train_encoder(&s, vec![3, 5, 8, 9], stats, &small_config(80), &mut |p| {
+        losses.push(p.mse)
+    })
+    .unwrap();
+    assert_eq!(losses.len(), 80);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[75..].iter().sum::<f32>() / 5.0;
+    assert!(last < 0.5 * first, "mse {first} -> {last}");
+    let out = enc.encode(&s[0].image).unwrap();
+    assert_eq!(out.shape(), (8, 8, 4));
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("enc.safetensors");
+    enc.save(&path).unwrap();
+    let back = QueryEncoder::load(&path).unwrap();
+    assert_eq!(back.dims(), &[3, 5, 8, 9]);
+    let out2 = back.encode(&s[0].image).unwrap();
+    for (a, b) in out.data().iter().zip(out2.data()) {
+        assert!((a - b).abs() < 1e-5);
+    }
+    assert!(matches!(
+        back.check_dims(&[3, 5, 8]),
+        Err(EncoderError::DimensionMismatch {
+            encoder: 4,
+            field: 3
+        })
+    ));
+    back.check_dims(&[3, 5, 8, 9]).unwrap();
+}
+
+#[test]
+fn typed_errors() {
+    let s = samples(2, 32, 2);
+    let stats = stats_of(&s);
+    let cfg = small_config(1);
+    let mut nop = |_: &EncoderProgress| {};
+    assert!(matches!(
+        train_encoder(&[], vec![0, 1, 2, 3], stats.clone(), &cfg, &mut nop),
+        Err(EncoderError::NoSamples)
+    ));
+    // Three dims requested, four rendered: encoder vs field mismatch.
+    let three = FeatureStats {
+        mean: stats.mean[..3].to_vec(),
+        std: stats.std[..3].to_vec(),
+    };
+    assert!(matches!(
+        train_encoder(&s, vec![0, 1, 2], three, &cfg, &mut nop),
+        Err(EncoderError::DimensionMismatch {
+            encoder: 3,
+            field: 4
+        })
+    ));
+    let enc = train_encoder(&s, vec![0, 1, 2, 3], stats, &cfg, &mut nop).unwrap();
+    let grey = Image::<f32>::new(32, 32, 1);
+    assert!(matches!(enc.encode(&grey), Err(EncoderError::BadInput(_))));
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("bad.safetensors");
+    std::fs::write(&p, b"not a checkpoint").unwrap();
+    assert!(matches!(
+        QueryEncoder::load(&p),
+        Err(EncoderError::Format { .. })
+    ));
+}
+
+#[test]
+fn head_phase_lowers_the_loss_and_roundtrips() {
+    let s = samples(8, 32, 3);
+    let stats = stats_of(&s);
+    let cfg = EncoderTrainConfig {
+        head_phase: HeadPhaseConfig {
+            steps: 60,
+            images: 4,
+            cells: 32,
+            learning_rate: 1e-2,
+            copies: 2,
+        },
+        ..small_config(20)
+    };
+    assert_eq!(cfg.total_steps(), 80);
+    let mut seen = Vec::new();
+    let enc = train_encoder(&s, vec![0, 1, 2, 3], stats, &cfg, &mut |p| {
+        seen.push((p.step, p.steps, p.mse))
+    })
+    .unwrap();
+    assert_eq!(seen.len(), 80);
+    assert!(
+        seen.iter()
+            .enumerate()
+            .all(|(i, p)| p.0 == i + 1 && p.1 == 80)
+    );
+    // Head-phase mse (last 5 steps) below the end-to-end phase's last 5 steps.
+    let e2e: f32 = seen[15..20].iter().map(|p| p.2).sum::<f32>() / 5.0;
+    let head: f32 = seen[75..].iter().map(|p| p.2).sum::<f32>() / 5.0;
+    assert!(head < e2e, "mse {e2e} -> {head}");
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("enc.safetensors");
+    enc.save(&path).unwrap();
+    let back = QueryEncoder::load(&path).unwrap();
+    assert_eq!(back.config(), enc.config());
+    let (a, b) = (
+        enc.encode(&s[1].image).unwrap(),
+        back.encode(&s[1].image).unwrap(),
+    );
+    for (x, y) in a.data().iter().zip(b.data()) {
+        assert!((x - y).abs() < 1e-5);
+    }
+}
+
+#[test]
+fn format_1_checkpoint_is_refused_with_a_typed_error() {
+    // A format-1 file: safetensors with the old `matloc_encoder` metadata and the old
+    // convolutional-head tensor names.
+    let meta = std::collections::HashMap::from([(
+        "matloc_encoder".to_string(),
+        r#"[{"width":16,"dilations":[1]},[0],{"mean":[0.0],"std":[1.0]}]"#.to_string(),
+    )]);
+    let w = vec![0u8; 4 * 16];
+    let view = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![1, 16, 1, 1], &w)
+        .unwrap();
+    let bytes = safetensors::serialize([("head.weight", view)], Some(meta)).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("v1.safetensors");
+    std::fs::write(&p, bytes).unwrap();
+    match QueryEncoder::load(&p) {
+        Err(EncoderError::Format { reason, .. }) => {
+            assert!(reason.contains("format 1"), "{reason}")
+        }
+        other => panic!("expected a format error, got {other:?}"),
+    }
+}

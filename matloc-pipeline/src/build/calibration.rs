@@ -1,0 +1,197 @@
+//! The calibration stage: held-out training views (every `holdout_every`-th view of a block,
+//! kept out of its pairs and encoder, not of its NeRF) are localized with the finished map; the
+//! attempts fit the confidence model and the bound on an accepted pose's rotation.
+
+use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_data::Dataset;
+use matloc_partition::Partition;
+use matloc_place::{PlaceModel, PlacePredictor};
+use matloc_pnp::LoRansacPnp;
+
+use crate::build::common::{BuildEvent, load_image, spaced, stage, views_of_block};
+use crate::config::{CalibrationConfig, MapConfig};
+use crate::error::PipelineError;
+use crate::localizer::FixedPlace;
+use crate::localizer::confidence::{ConfidenceModel, Evidence};
+use crate::localizer::options::LocalizeOptions;
+use crate::map::layout::{CONFIDENCE_FILE, CalibrationRecord, PLACE_DIR};
+use crate::map::load::{LoadedBlocks, NerfMapComponents};
+use crate::map::manifest::MapDir;
+
+/// Localizes the held-out views and stores the fitted confidence.
+pub fn run(
+    dataset: &Dataset,
+    partition: &Partition,
+    map: &mut MapDir,
+    config: &MapConfig,
+    progress: &mut dyn FnMut(&BuildEvent),
+) -> Result<(), PipelineError> {
+    let nb = partition.blocks.len();
+    let holdout = config.calibration.holdout_every;
+    let mut held = Vec::new();
+    for b in 0..nb {
+        held.extend(views_of_block(dataset, partition, b, holdout).1);
+    }
+    let held = spaced(&held, config.calibration.max_views);
+    stage(
+        map,
+        "calibration",
+        held.len() as u64,
+        progress,
+        &mut |map, progress| {
+            let loaded = LoadedBlocks::load(map, nb, &config.localize, &NerfMapComponents)?;
+            let mut place = PlaceModel::load(&map.path_of(PLACE_DIR)?)?;
+            config.place.configure(&mut place);
+            let solver = LoRansacPnp::new(config.localize.pnp.clone());
+            let mut samples = Vec::new();
+            let mut corrections = Vec::new();
+            for (done, v) in held.iter().enumerate() {
+                let (image, camera) = load_image(dataset, v.index)?;
+                let hyps = place.predict(
+                    &image,
+                    &camera,
+                    config.calibration.hypotheses_per_view.max(1),
+                )?;
+                for h in hyps {
+                    let h_coarse = h.cam_from_world;
+                    let fixed = FixedPlace(vec![h]);
+                    let options = LocalizeOptions {
+                        top_k: 1,
+                        confidence: ConfidenceModel {
+                            accept_threshold: 0.0,
+                            ..config.localize.confidence.clone()
+                        },
+                        ..config.localize.clone()
+                    };
+                    let localizer = loaded.localizer(&fixed, &solver, options);
+                    let out = localizer.localize(&image, &camera)?;
+                    let Some(rep) = out.hypotheses.first() else {
+                        continue;
+                    };
+                    let evidence = Evidence {
+                        inliers: rep.inliers,
+                        inlier_ratio: if rep.matches == 0 {
+                            0.0
+                        } else {
+                            rep.inliers as f64 / rep.matches as f64
+                        },
+                        matches: rep.matches,
+                        alignment: rep.alignment,
+                    };
+                    let (te, re) = match &out.cam_from_world {
+                        Some(p) => (
+                            translation_error_m(p, &v.cam_from_world),
+                            rotation_error_deg(p, &v.cam_from_world),
+                        ),
+                        None => (f64::INFINITY, f64::INFINITY),
+                    };
+                    let ok = te <= config.calibration.correct_translation_m
+                        && re <= config.calibration.correct_rotation_deg;
+                    samples.push((evidence, ok, te, re));
+                    corrections.push(
+                        out.cam_from_world
+                            .as_ref()
+                            .map_or(f64::INFINITY, |p| rotation_error_deg(p, &h_coarse)),
+                    );
+                }
+                progress(&BuildEvent::StageProgress {
+                    done: done as u64 + 1,
+                    message: format!(
+                        "{} attempts, {} correct",
+                        samples.len(),
+                        samples.iter().filter(|s| s.1).count()
+                    ),
+                });
+            }
+            let labelled: Vec<(Evidence, bool)> = samples.iter().map(|s| (s.0, s.1)).collect();
+            let model = ConfidenceModel::fit(&labelled, config.calibration.accept_threshold)?;
+            let right = labelled
+                .iter()
+                .filter(|(e, ok)| model.accept(e) == *ok)
+                .count();
+            let accuracy = right as f64 / labelled.len().max(1) as f64;
+            let max_accept_rotation_deg = rotation_bound(
+                samples
+                    .iter()
+                    .zip(&corrections)
+                    .filter(|(s, _)| s.1)
+                    .map(|(_, c)| *c),
+                &config.calibration,
+                config.localize.max_accept_rotation_deg,
+            );
+            // Infinite errors are not valid JSON numbers: store them as a large sentinel.
+            let samples = samples
+                .into_iter()
+                .map(|(e, ok, t, r)| (e, ok, t.min(1e9), r.min(1e9)))
+                .collect();
+            map.write_json(
+                CONFIDENCE_FILE,
+                &CalibrationRecord {
+                    model,
+                    samples,
+                    accuracy,
+                    corrections_deg: corrections.iter().map(|c| c.min(1e9)).collect(),
+                    max_accept_rotation_deg,
+                },
+            )?;
+            Ok(())
+        },
+    )
+}
+
+/// The calibrated rotation-correction bound: `margin ×` the 90th percentile of the corrections
+/// of correct attempts, within `[min_rotation_bound_deg, configured]`; `None` when the margin
+/// is 0 or no attempt was correct (the configured bound applies). A percentile, not the
+/// largest: one correct attempt turned 4.1° on a map whose others stayed ≤ 2.1°, and the bound
+/// it gave (10.2°) let through a wrong pose that had turned 8.2°.
+pub fn rotation_bound(
+    correct_corrections_deg: impl Iterator<Item = f64>,
+    config: &CalibrationConfig,
+    configured_deg: f64,
+) -> Option<f64> {
+    if config.rotation_bound_margin <= 0.0 {
+        return None;
+    }
+    let mut c: Vec<f64> = correct_corrections_deg.filter(|c| c.is_finite()).collect();
+    if c.is_empty() {
+        return None;
+    }
+    c.sort_by(f64::total_cmp);
+    let p90 = c[((c.len() - 1) as f64 * 0.9).round() as usize];
+    Some(
+        (config.rotation_bound_margin * p90)
+            .max(config.min_rotation_bound_deg)
+            .min(configured_deg),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rotation_bound_scales_the_p90_correct_correction_within_limits() {
+        let cfg = CalibrationConfig::default();
+        let b = |c: &[f64], cfg: &CalibrationConfig| rotation_bound(c.iter().copied(), cfg, 45.0);
+        // 2.5 × the 90th percentile (4° among these); non-finite corrections (no pose) are
+        // ignored.
+        let mut c: Vec<f64> = (1..=10).map(|i| i as f64 * 0.4).collect();
+        c.push(f64::INFINITY);
+        assert_eq!(b(&c, &cfg), Some(2.5 * 3.6));
+        // One outlier among many does not move it.
+        let mut outlier = vec![2.0; 19];
+        outlier.push(9.0);
+        assert_eq!(b(&outlier, &cfg), Some(6.0));
+        // Never below the floor, never above the configured bound.
+        assert_eq!(b(&[0.5], &cfg), Some(cfg.min_rotation_bound_deg));
+        assert_eq!(b(&[30.0], &cfg), Some(45.0));
+        // No correct attempt, or the bound turned off: the configured bound applies.
+        assert_eq!(b(&[], &cfg), None);
+        assert_eq!(b(&[f64::INFINITY], &cfg), None);
+        let off = CalibrationConfig {
+            rotation_bound_margin: 0.0,
+            ..cfg
+        };
+        assert_eq!(b(&[4.0], &off), None);
+    }
+}

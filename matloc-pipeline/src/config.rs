@@ -1,0 +1,332 @@
+//! Everything that defines a map build ([`MapConfig`]), stage by stage. Stored in the map's
+//! manifest; a build resumes only with the same config. Missing fields take their defaults.
+
+use matloc_encoder::{EncoderTrainConfig, HeadPhaseConfig};
+use matloc_partition::{PoseAwareConfig, SampleConfig};
+use matloc_place::{GroupConfig, PlaceModel, TrainConfig};
+use matloc_select::GreedySearch;
+use serde::{Deserialize, Serialize};
+
+use crate::gt::{PerturbKind, Perturbation};
+use crate::localizer::options::LocalizeOptions;
+
+/// Everything that defines a map build. Stored in the manifest; resuming a build requires the
+/// same config.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct MapConfig {
+    /// Ray samples of each training pose for the partition.
+    pub samples: SampleConfig,
+    /// Pose-aware partition (target ~150 poses per block, as the paper).
+    pub partition: PoseAwareConfig,
+    /// Sub-NeRF training.
+    pub nerf: NerfStageConfig,
+    /// Ground-truth pairs per block.
+    pub pairs: PairStageConfig,
+    /// Query encoder per block.
+    pub encoder: EncoderStageConfig,
+    /// Feature selection per block.
+    pub select: SelectStageConfig,
+    /// Pose groups and the place classifier.
+    pub place: PlaceStageConfig,
+    /// Held-out views and the confidence calibration.
+    pub calibration: CalibrationConfig,
+    /// Localizer settings stored with the map (the confidence model is replaced by the
+    /// calibrated one when the map is loaded).
+    pub localize: LocalizeOptions,
+}
+
+/// Sub-NeRF training settings of a map build.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct NerfStageConfig {
+    /// Training steps per block.
+    pub steps: u64,
+    /// Steps between checkpoints (resume granularity).
+    pub checkpoint_every: u64,
+    /// Integer image downscale for training.
+    pub downscale: u32,
+    /// Changes to the model config derived from the dataset, as a JSON object merged into it
+    /// (e.g. `{"field": {"log2_table_size": 15}, "train": {"batch_rays": 1024}}`).
+    pub model_overrides: serde_json::Value,
+    /// Blocks trained at the same time, each on its share of the cores (1 = one after the
+    /// other, each on all cores). Per training step both use the cores fully; side by side
+    /// overlaps each run's serial start and end (2 cores, 2 × 300 steps: 127 vs 143 s).
+    pub parallel_blocks: usize,
+}
+
+impl Default for NerfStageConfig {
+    fn default() -> Self {
+        Self {
+            steps: 3000,
+            checkpoint_every: 500,
+            downscale: 1,
+            model_overrides: serde_json::Value::Null,
+            parallel_blocks: 2,
+        }
+    }
+}
+
+/// Ground-truth pair generation per block.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PairStageConfig {
+    /// Training views per block used for pairs (evenly spaced; held-out views excluded).
+    pub views_per_block: usize,
+    /// Coarse-pose error model the pairs cover (the place predictor's medoid poses are a few
+    /// metres and degrees off).
+    pub perturbation: Perturbation,
+    /// Perturbed renders per view.
+    pub perturbations_per_view: usize,
+}
+
+impl Default for PairStageConfig {
+    fn default() -> Self {
+        Self {
+            views_per_block: 16,
+            perturbation: Perturbation {
+                kind: PerturbKind::UniformBall,
+                translation_m: 3.0,
+                rotation_deg: 5.0,
+            },
+            perturbations_per_view: 1,
+        }
+    }
+}
+
+/// Query encoder training per block.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct EncoderStageConfig {
+    /// Training views per block (evenly spaced; held-out views excluded).
+    pub views_per_block: usize,
+    /// Network and optimiser settings.
+    pub train: EncoderTrainConfig,
+}
+
+impl Default for EncoderStageConfig {
+    /// 600 end-to-end steps, then 3000 head-only steps on the frozen trunk's cell buffer (the
+    /// recipe and its measurements: docs/DECISIONS.md, "Query encoder recipe").
+    fn default() -> Self {
+        Self {
+            views_per_block: 128,
+            train: EncoderTrainConfig {
+                steps: 600,
+                head_phase: HeadPhaseConfig {
+                    steps: 3000,
+                    ..HeadPhaseConfig::default()
+                },
+                ..EncoderTrainConfig::default()
+            },
+        }
+    }
+}
+
+/// Feature selection per block.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SelectStageConfig {
+    /// Dims to select (N_s); at least the field's 47 keeps every dim without running the
+    /// selector.
+    pub dims: usize,
+    /// How dims are scored when `dims` is below the field's.
+    pub selector: SelectorKind,
+    /// Settings of [`SelectorKind::Renders`].
+    pub renders: RenderSelectConfig,
+}
+
+/// Selector of the build's select stage.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum SelectorKind {
+    /// Greedy MNN-F1 on the block's GT pairs (exact partners among the render's pairs).
+    GtPairs,
+    /// Greedy on held-out renders, scored as the localizer matches
+    /// ([`crate::build::select`]); localizes more starts than the GT-pair greedy at N_s = 5.
+    #[default]
+    Renders,
+}
+
+impl Default for SelectStageConfig {
+    /// All 47 dims: with the learned encoder, matching on every dim localizes more than any 5-
+    /// to 16-dim selection, at about four times the matching time. Selection remains the
+    /// paper's speed lever (`dims: 5` in a map config) and what Table 3 measures.
+    fn default() -> Self {
+        Self {
+            dims: 47,
+            selector: SelectorKind::default(),
+            renders: RenderSelectConfig::default(),
+        }
+    }
+}
+
+/// What a subset is scored by on the selection views.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum RenderScore {
+    /// F1 of the windowed MNN matches: a match is correct when its 3D point projects within
+    /// `tol_px` of its query pixel at the true pose; recall is over the render's valid points.
+    MatchF1 {
+        /// Pixel tolerance of a correct match.
+        tol_px: f64,
+    },
+    /// One render–match–PnP pass from the perturbed pose (the localizer's first-pass inlier
+    /// threshold): the mean over views of the translation error (a failed pass keeps the
+    /// start, a worse pose counts as the start) relative to the start's, negated.
+    SinglePass,
+}
+
+/// Settings of [`select_on_renders`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RenderSelectConfig {
+    /// Greedy forward search and swap refinement.
+    pub search: GreedySearch,
+    /// Criterion.
+    pub score: RenderScore,
+    /// At most this many held-out views per block (evenly spaced; 0 = all).
+    pub max_views: usize,
+    /// Start poses of the views: the true pose perturbed by this.
+    pub perturbation: Perturbation,
+    /// Seed of the perturbations (and of RANSAC for [`RenderScore::SinglePass`]).
+    pub seed: u64,
+}
+
+impl Default for RenderSelectConfig {
+    fn default() -> Self {
+        Self {
+            search: GreedySearch {
+                max_swap_rounds: 1,
+                ..GreedySearch::default()
+            },
+            score: RenderScore::MatchF1 { tol_px: 4.0 },
+            max_views: 16,
+            perturbation: PairStageConfig::default().perturbation,
+            seed: 0,
+        }
+    }
+}
+
+/// Pose groups and the place classifier.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PlaceStageConfig {
+    /// Two-stage K-means settings.
+    pub groups: GroupConfig,
+    /// ArcFace classifier training.
+    pub train: TrainConfig,
+    /// Views rendered by the sub-NeRFs near the training views, added to the classifier's
+    /// training set (the paper's optional NeRF augmentation).
+    pub rendered: RenderedViewsConfig,
+    /// Coarse pose of a predicted group: the member whose image embedding is nearest the
+    /// query's (true) or the group medoid (false, the paper). A group spans up to the
+    /// orientation threshold in viewing direction, so its medoid can be far from the query's.
+    pub member_pose: bool,
+    /// Weight of a group's best member similarity in its score against the class centre's
+    /// (`PlaceModel::set_member_weight`); off (0): it raised top-k accuracy but not
+    /// localization.
+    pub member_weight: f32,
+    /// Blend temperature of a coarse pose between the nearest member and its most similar
+    /// neighbour (`PlaceModel::set_member_blend`; 0 = off): survey queries fall between two
+    /// database poses, and the blend brings the coarse pose closer.
+    pub member_blend: f32,
+    /// The blend is a second hypothesis of the top group, tried only when the nearest
+    /// member's fails (`PlaceModel::set_blend_as_extra`): replacing the nearest member made
+    /// localization worse, as a fallback it cut refusals (docs/DECISIONS.md).
+    pub blend_as_extra: bool,
+}
+
+impl PlaceStageConfig {
+    /// Applies the prediction settings (coarse pose, group scoring) to a loaded model.
+    pub fn configure(&self, place: &mut PlaceModel) {
+        place.set_refine_within_group(self.member_pose);
+        place.set_member_weight(self.member_weight);
+        place.set_member_blend(self.member_blend);
+        place.set_blend_as_extra(self.blend_as_extra);
+    }
+}
+
+impl Default for PlaceStageConfig {
+    fn default() -> Self {
+        Self {
+            groups: GroupConfig::default(),
+            train: TrainConfig::default(),
+            rendered: RenderedViewsConfig::default(),
+            member_pose: true,
+            member_weight: 0.0,
+            member_blend: 0.25,
+            blend_as_extra: true,
+        }
+    }
+}
+
+/// NeRF-rendered training views for the place classifier: the survey gives ~2 images per pose
+/// group, and test queries fall between survey poses.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RenderedViewsConfig {
+    /// Views rendered per training view (0 = off); one raised the top-1 group accuracy, more
+    /// gained nothing (docs/DECISIONS.md).
+    pub per_view: usize,
+    /// Perturbation of the rendered poses: uniform ball of this radius, metres ...
+    pub translation_m: f64,
+    /// ... and a rotation of up to this angle about a uniform axis, degrees.
+    pub rotation_deg: f64,
+    /// Rendered width in pixels (height by the aspect ratio); 0 = twice the classifier's input
+    /// width, the size its augmentation crops from.
+    pub width: usize,
+    /// Seed of the perturbations.
+    pub seed: u64,
+}
+
+impl Default for RenderedViewsConfig {
+    fn default() -> Self {
+        Self {
+            per_view: 1,
+            translation_m: 5.0,
+            rotation_deg: 10.0,
+            width: 0,
+            seed: 0,
+        }
+    }
+}
+
+/// Held-out views and confidence calibration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct CalibrationConfig {
+    /// Every n-th training view of a block is held out of pairs and encoder (0 = none).
+    pub holdout_every: usize,
+    /// At most this many held-out views are localized for calibration.
+    pub max_views: usize,
+    /// Place hypotheses per view, each localized on its own (wrong places give the negatives).
+    pub hypotheses_per_view: usize,
+    /// A pose within this translation error counts as correct, metres (default 5 m / 10°, the
+    /// evaluation's loosest recall threshold: the refusal exists to avoid false accepts) ...
+    pub correct_translation_m: f64,
+    /// ... and within this rotation error, degrees.
+    pub correct_rotation_deg: f64,
+    /// Refusal threshold on the calibrated probability.
+    pub accept_threshold: f64,
+    /// The localizer accepts a pose only within this many times the 90th percentile of the
+    /// rotation corrections (pose vs coarse pose) of correct calibration attempts
+    /// ([`LocalizeOptions::max_accept_rotation_deg`]; 0 = no calibrated bound): wrong poses
+    /// that PnP and the confidence accept slide along the near-nadir tilt/shift ambiguity,
+    /// away from the coarse attitude.
+    pub rotation_bound_margin: f64,
+    /// Lower limit of the calibrated rotation bound, degrees.
+    pub min_rotation_bound_deg: f64,
+}
+
+impl Default for CalibrationConfig {
+    fn default() -> Self {
+        Self {
+            holdout_every: 8,
+            max_views: 24,
+            hypotheses_per_view: 3,
+            correct_translation_m: 5.0,
+            correct_rotation_deg: 10.0,
+            accept_threshold: 0.5,
+            rotation_bound_margin: 2.5,
+            min_rotation_bound_deg: 6.0,
+        }
+    }
+}

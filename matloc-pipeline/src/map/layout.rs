@@ -1,0 +1,79 @@
+//! Where each stage's files live inside a map directory, and the records stored there.
+
+use serde::{Deserialize, Serialize};
+
+use crate::localizer::confidence::{ConfidenceModel, Evidence};
+
+/// Name of the partition file inside the map.
+pub const PARTITION_FILE: &str = "partition.json";
+
+/// Directory of block `b` inside the map.
+pub fn block_dir(b: usize) -> String {
+    format!("blocks/{b}")
+}
+
+/// Name of the place model directory inside the map.
+pub const PLACE_DIR: &str = "place";
+
+/// Name of the calibration record inside the map.
+pub const CONFIDENCE_FILE: &str = "confidence.json";
+
+/// File of block `b`'s ground-truth pairs.
+pub fn pairs_file(b: usize) -> String {
+    format!("{}/pairs.safetensors", block_dir(b))
+}
+
+/// File of block `b`'s query encoder.
+pub fn encoder_file(b: usize) -> String {
+    format!("{}/encoder.safetensors", block_dir(b))
+}
+
+/// File of block `b`'s selection record.
+pub fn selection_file(b: usize) -> String {
+    format!("{}/selection.json", block_dir(b))
+}
+
+/// Block `b`'s selection and how it was obtained.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SelectionRecord {
+    /// Selected field dims.
+    pub dims: Vec<usize>,
+    /// Selector name.
+    pub selector: String,
+    /// Its objective value.
+    pub objective: f64,
+    /// GT pairs it was selected on (held-out views for a selection on renders).
+    pub pairs: usize,
+}
+
+/// What calibration saw, stored next to the fitted model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationRecord {
+    /// The fitted model.
+    pub model: ConfidenceModel,
+    /// Samples: evidence, label, translation and rotation error of the attempt (∞ = no pose).
+    pub samples: Vec<(Evidence, bool, f64, f64)>,
+    /// Fraction of samples the fitted rule classifies correctly.
+    pub accuracy: f64,
+    /// Per sample: rotation between its pose and its hypothesis' coarse pose, degrees (1e9 =
+    /// no pose). Empty in maps calibrated before it was recorded.
+    #[serde(default)]
+    pub corrections_deg: Vec<f64>,
+    /// Calibrated bound on an accepted pose's rotation from its coarse pose (see
+    /// [`CalibrationConfig::rotation_bound_margin`]); `None`: the configured one applies.
+    #[serde(default)]
+    pub max_accept_rotation_deg: Option<f64>,
+}
+
+/// Stages a complete map has.
+pub fn required_stages(blocks: usize) -> Vec<String> {
+    let mut v = vec!["partition".to_string()];
+    for b in 0..blocks {
+        for s in ["nerf", "pairs", "encoder", "select"] {
+            v.push(format!("{s}/{b}"));
+        }
+    }
+    v.push("place".into());
+    v.push("calibration".into());
+    v
+}

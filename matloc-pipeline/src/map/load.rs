@@ -1,0 +1,393 @@
+//! A built map loaded and validated: its blocks (renderer, query encoder, matcher, selected
+//! dims), the place predictor, the pose solver and the calibrated confidence, each behind its
+//! stage trait. [`MapComponents`] makes those objects from what the build stored;
+//! [`NerfMapComponents`] reads this crate's own map format, and another implementation can
+//! serve the same map directory with other renderers, encoders, matchers, place predictors or
+//! solvers ([`LoadedMap::open_with`]).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use matloc_encoder::QueryEncoder;
+use matloc_match::nerf_view::NerfViewRenderer;
+use matloc_match::{FeatureStats, Matcher, MnnConfig, MnnMatcher, ViewRenderer};
+use matloc_partition::Partition;
+use matloc_place::{PlaceModel, PlacePredictor};
+use matloc_pnp::{LoRansacPnp, PoseSolver};
+use matloc_render::NerfModel;
+
+use crate::config::MapConfig;
+use crate::error::PipelineError;
+use crate::localizer::confidence::ConfidenceModel;
+use crate::localizer::options::LocalizeOptions;
+use crate::localizer::{Localizer, LocalizerBlock, QueryFeatureEncoder, positions_of};
+use crate::map::layout::{
+    CONFIDENCE_FILE, CalibrationRecord, PARTITION_FILE, PLACE_DIR, SelectionRecord, block_dir,
+    encoder_file, required_stages, selection_file,
+};
+use crate::map::manifest::MapDir;
+
+/// `model` rendering with `steps` march steps per ray (0 = unchanged).
+fn with_render_steps(model: NerfModel, steps: usize) -> Result<NerfModel, PipelineError> {
+    if steps == 0 {
+        return Ok(model);
+    }
+    let mut view = model.config().render;
+    view.march.steps = steps;
+    Ok(model.with_view_config(view)?)
+}
+
+/// Block `b`'s NeRF; `render_steps > 0` replaces its ray-marching grid.
+pub(crate) fn load_nerf(
+    map: &MapDir,
+    b: usize,
+    render_steps: usize,
+) -> Result<NerfViewRenderer, PipelineError> {
+    let dir = map.path_of(&block_dir(b))?;
+    let model = with_render_steps(NerfModel::load(&dir)?, render_steps)?;
+    Ok(NerfViewRenderer::new(model, block_dir(b)))
+}
+
+/// Block `b`'s query encoder, read through the map so its checksum is verified.
+pub(crate) fn load_encoder(map: &MapDir, b: usize) -> Result<QueryEncoder, PipelineError> {
+    let name = encoder_file(b);
+    map.read_file(&name)?;
+    Ok(QueryEncoder::load(&map.path_of(&name)?)?)
+}
+
+/// The matching window of a map (see [`LocalizeOptions::window_fraction`]), for a grid as
+/// wide as the map's images.
+pub(crate) fn window_px(map: &MapDir, options: &LocalizeOptions) -> Option<f64> {
+    let width = map
+        .manifest()
+        .scene
+        .get("camera")
+        .and_then(|c| c.get("width"))
+        .and_then(|w| w.as_u64())
+        .unwrap_or(320) as f64;
+    (options.window_fraction > 0.0).then_some(options.window_fraction * width)
+}
+
+/// A block's renderer as the localizer uses it, and the NeRF behind it when there is one (the
+/// methods that render colour — the rgb-keypoints and iNeRF baselines — need the model).
+pub struct BlockRenderer {
+    /// Features and depth at a pose.
+    pub renderer: Arc<dyn ViewRenderer>,
+    /// The same renderer as a NeRF, if it is one.
+    pub nerf: Option<Arc<NerfViewRenderer>>,
+}
+
+/// Makes a loaded map's stage objects from what its build stored.
+pub trait MapComponents {
+    /// Block `block`'s renderer, with the localizer's render settings.
+    fn renderer(
+        &self,
+        map: &MapDir,
+        block: usize,
+        options: &LocalizeOptions,
+    ) -> Result<BlockRenderer, PipelineError>;
+    /// Block `block`'s query encoder.
+    fn encoder(
+        &self,
+        map: &MapDir,
+        block: usize,
+    ) -> Result<Box<dyn QueryFeatureEncoder>, PipelineError>;
+    /// A matcher for `encoder`'s output restricted to `dims`, within `window_px` (`None`:
+    /// global).
+    fn matcher(
+        &self,
+        encoder: &dyn QueryFeatureEncoder,
+        dims: &[usize],
+        window_px: Option<f64>,
+    ) -> Result<Box<dyn Matcher>, PipelineError>;
+    /// The place predictor, configured as the build says.
+    fn place(
+        &self,
+        map: &MapDir,
+        config: &MapConfig,
+    ) -> Result<Box<dyn PlacePredictor>, PipelineError>;
+    /// The pose solver with the map's options.
+    fn solver(&self, options: &LocalizeOptions) -> Box<dyn PoseSolver + Send + Sync>;
+}
+
+/// The components of this crate's map format: sub-NeRFs ([`NerfViewRenderer`]), the burn
+/// query encoder, the mutual-nearest-neighbour matcher normalised with the encoder's feature
+/// statistics, the ArcFace place classifier and P3P in LO-RANSAC with
+/// [`LocalizeOptions::pnp`].
+#[derive(Clone, Copy, Debug, Default)]
+pub struct NerfMapComponents;
+
+impl MapComponents for NerfMapComponents {
+    fn renderer(
+        &self,
+        map: &MapDir,
+        block: usize,
+        options: &LocalizeOptions,
+    ) -> Result<BlockRenderer, PipelineError> {
+        let nerf = Arc::new(load_nerf(map, block, options.render_steps)?);
+        Ok(BlockRenderer {
+            renderer: nerf.clone(),
+            nerf: Some(nerf),
+        })
+    }
+
+    fn encoder(
+        &self,
+        map: &MapDir,
+        block: usize,
+    ) -> Result<Box<dyn QueryFeatureEncoder>, PipelineError> {
+        Ok(Box::new(load_encoder(map, block)?))
+    }
+
+    fn matcher(
+        &self,
+        encoder: &dyn QueryFeatureEncoder,
+        dims: &[usize],
+        window_px: Option<f64>,
+    ) -> Result<Box<dyn Matcher>, PipelineError> {
+        Ok(Box::new(block_matcher(encoder, dims, window_px)?))
+    }
+
+    fn place(
+        &self,
+        map: &MapDir,
+        config: &MapConfig,
+    ) -> Result<Box<dyn PlacePredictor>, PipelineError> {
+        map.read_file(&format!("{PLACE_DIR}/{}", matloc_place::MODEL_WEIGHTS))?;
+        let mut place = PlaceModel::load(&map.path_of(PLACE_DIR)?)?;
+        config.place.configure(&mut place);
+        Ok(Box::new(place))
+    }
+
+    fn solver(&self, options: &LocalizeOptions) -> Box<dyn PoseSolver + Send + Sync> {
+        Box::new(LoRansacPnp::new(options.pnp.clone()))
+    }
+}
+
+/// One block of a loaded map.
+pub struct MapBlock {
+    /// Features and depth of the block (its sub-NeRF in this crate's maps).
+    pub renderer: Arc<dyn ViewRenderer>,
+    /// The sub-NeRF itself, when the renderer is one.
+    pub nerf: Option<Arc<NerfViewRenderer>>,
+    /// Query image → this block's feature domain.
+    pub encoder: Box<dyn QueryFeatureEncoder>,
+    /// Matcher normalising with this block's feature statistics (windowed when
+    /// [`LocalizeOptions::window_fraction`] is positive).
+    pub matcher: Box<dyn Matcher>,
+    /// Rendered dims (the matcher's feature space; see [`LocalizerBlock::dims`]).
+    pub dims: Vec<usize>,
+    /// Selected dims matched on, when fewer than `dims`.
+    pub match_dims: Option<Vec<usize>>,
+}
+
+/// The MNN matcher of a block for matching on `dims`: the encoder's feature statistics
+/// restricted to them (the matcher sees only those dims; none when the encoder has none),
+/// windowed to `window_px`.
+pub fn block_matcher(
+    encoder: &dyn QueryFeatureEncoder,
+    dims: &[usize],
+    window_px: Option<f64>,
+) -> Result<MnnMatcher, PipelineError> {
+    let stats = match encoder.stats() {
+        Some(full) => {
+            let channels = positions_of(dims, encoder.dims())?;
+            Some(FeatureStats {
+                mean: channels.iter().map(|&c| full.mean[c]).collect(),
+                std: channels.iter().map(|&c| full.std[c]).collect(),
+            })
+        }
+        None => None,
+    };
+    Ok(MnnMatcher::new(MnnConfig {
+        stats,
+        window_px,
+        ..MnnConfig::default()
+    }))
+}
+
+impl MapBlock {
+    /// This block as the localizer sees it.
+    pub fn localizer_block(&self) -> LocalizerBlock<'_> {
+        LocalizerBlock {
+            renderer: self.renderer.as_ref(),
+            encoder: self.encoder.as_ref(),
+            matcher: self.matcher.as_ref(),
+            dims: self.dims.clone(),
+            match_dims: self.match_dims.clone(),
+        }
+    }
+}
+
+/// The blocks of a map, loaded.
+pub struct LoadedBlocks(pub Vec<MapBlock>);
+
+impl LoadedBlocks {
+    /// Loads blocks `0..n` (renderer, encoder, selection) from `map` with `components`, with
+    /// the matching window ([`LocalizeOptions::window_fraction`], for a grid as wide as the
+    /// map's images) and the render sampling ([`LocalizeOptions::render_steps`]) of `options`.
+    pub fn load(
+        map: &MapDir,
+        n: usize,
+        options: &LocalizeOptions,
+        components: &dyn MapComponents,
+    ) -> Result<Self, PipelineError> {
+        let window_px = window_px(map, options);
+        let mut blocks = Vec::with_capacity(n);
+        for b in 0..n {
+            let BlockRenderer { renderer, nerf } = components.renderer(map, b, options)?;
+            let encoder = components.encoder(map, b)?;
+            let sel: SelectionRecord = map.read_json(&selection_file(b))?;
+            let (dims, match_dims) =
+                if options.refine_on_all_dims && sel.dims.len() < encoder.dims().len() {
+                    (encoder.dims().to_vec(), Some(sel.dims))
+                } else {
+                    (sel.dims, None)
+                };
+            let matcher = components.matcher(encoder.as_ref(), &dims, window_px)?;
+            blocks.push(MapBlock {
+                renderer,
+                nerf,
+                encoder,
+                matcher,
+                dims,
+                match_dims,
+            });
+        }
+        Ok(Self(blocks))
+    }
+
+    /// A localizer over these blocks.
+    pub fn localizer<'a>(
+        &'a self,
+        place: &'a dyn PlacePredictor,
+        solver: &'a dyn PoseSolver,
+        options: LocalizeOptions,
+    ) -> Localizer<'a> {
+        Localizer {
+            place,
+            blocks: self.0.iter().map(MapBlock::localizer_block).collect(),
+            solver,
+            options,
+        }
+    }
+}
+
+/// A built map, loaded and validated: everything localization and evaluation need.
+pub struct LoadedMap {
+    /// The map directory (manifest, checksums).
+    pub dir: MapDir,
+    /// The build configuration.
+    pub config: MapConfig,
+    /// The partition.
+    pub partition: Partition,
+    /// Blocks.
+    pub blocks: LoadedBlocks,
+    /// Place predictor.
+    pub place: Box<dyn PlacePredictor>,
+    /// Pose solver.
+    pub solver: Box<dyn PoseSolver + Send + Sync>,
+    /// Calibrated confidence.
+    pub confidence: ConfidenceModel,
+    /// Calibrated bound on an accepted pose's rotation from its coarse pose (`None`: the
+    /// configured one).
+    pub max_accept_rotation_deg: Option<f64>,
+}
+
+impl LoadedMap {
+    /// Opens a map with this crate's components ([`NerfMapComponents`]): validates the
+    /// manifest and every checksum, checks that the build completed, and loads the models.
+    pub fn open(root: &Path) -> Result<Self, PipelineError> {
+        Self::open_with(root, &NerfMapComponents)
+    }
+
+    /// [`LoadedMap::open`] with other components.
+    pub fn open_with(root: &Path, components: &dyn MapComponents) -> Result<Self, PipelineError> {
+        let dir = MapDir::open(root)?;
+        dir.verify()?;
+        let config: MapConfig = serde_json::from_value(dir.manifest().config.clone())
+            .map_err(|source| PipelineError::ManifestConfig { source })?;
+        let partition: Partition = dir.read_json(PARTITION_FILE)?;
+        let n = partition.blocks.len();
+        for s in required_stages(n) {
+            if !dir.stage_done(&s) {
+                return Err(PipelineError::Incomplete {
+                    root: root.to_path_buf(),
+                    stage: s,
+                });
+            }
+        }
+        let blocks = LoadedBlocks::load(&dir, n, &config.localize, components)?;
+        let place = components.place(&dir, &config)?;
+        let solver = components.solver(&config.localize);
+        let record: CalibrationRecord = dir.read_json(CONFIDENCE_FILE)?;
+        Ok(Self {
+            dir,
+            config,
+            partition,
+            blocks,
+            place,
+            solver,
+            confidence: record.model,
+            max_accept_rotation_deg: record.max_accept_rotation_deg,
+        })
+    }
+
+    /// Localizer options: the stored ones with the calibrated confidence.
+    pub fn options(&self) -> LocalizeOptions {
+        let configured = self.config.localize.max_accept_rotation_deg;
+        LocalizeOptions {
+            confidence: self.confidence.clone(),
+            max_accept_rotation_deg: self
+                .max_accept_rotation_deg
+                .map_or(configured, |b| b.min(configured)),
+            ..self.config.localize.clone()
+        }
+    }
+
+    /// The MatLoc localizer over this map's place predictor, blocks and solver.
+    pub fn localizer(&self) -> Localizer<'_> {
+        self.blocks
+            .localizer(self.place.as_ref(), self.solver.as_ref(), self.options())
+    }
+
+    /// The camera of the map's training images (the first one's), as recorded at build time:
+    /// the resolution its query encoders were trained at.
+    pub fn camera(&self) -> Option<matloc_core::Camera> {
+        self.dir
+            .manifest()
+            .scene
+            .get("camera")
+            .and_then(|c| serde_json::from_value(c.clone()).ok())
+    }
+
+    /// The NeRF of block `b`, when its renderer is one.
+    pub fn nerf(&self, b: usize) -> Option<&NerfModel> {
+        self.blocks
+            .0
+            .get(b)?
+            .nerf
+            .as_deref()
+            .map(NerfViewRenderer::model)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matloc_render::ModelConfig;
+
+    #[test]
+    fn render_steps_replace_only_the_march_grid() {
+        let mut config = ModelConfig::for_scene([-4.0, -4.0, -1.0], [4.0, 4.0, 3.0], 5.0, 2);
+        config.field.log2_table_size = 12;
+        let model = NerfModel::new(config.clone()).unwrap();
+        let same = with_render_steps(model.clone(), 0).unwrap();
+        assert_eq!(same.config(), &config);
+        let coarse = with_render_steps(model, 96).unwrap();
+        assert_eq!(coarse.config().render.march.steps, 96);
+        let mut expected = config;
+        expected.render.march.steps = 96;
+        assert_eq!(coarse.config(), &expected);
+    }
+}
