@@ -11,7 +11,7 @@ use crate::error::PipelineError;
 use crate::gt::TrainingView;
 use crate::map::manifest::MapDir;
 
-/// A progress event of [`build_map`].
+/// A progress event of [`crate::build::build_map`].
 #[derive(Clone, Debug, PartialEq)]
 pub enum BuildEvent {
     /// A stage starts; `total` units of work (0 = unknown).
