@@ -19,19 +19,19 @@ pub fn info(path: &Path, json: bool) -> Result<()> {
             "summary": summary,
             "problems": problems.iter().map(|p| p.to_string()).collect::<Vec<_>>(),
         });
-        println!("{}", serde_json::to_string_pretty(&value)?);
+        outln!("{}", serde_json::to_string_pretty(&value)?)?;
     } else {
-        println!("format: {format:?}");
-        print!("{summary}");
+        outln!("format: {format:?}")?;
+        out!("{summary}")?;
         if problems.is_empty() {
-            println!("files: all referenced images and depth maps present and consistent");
+            outln!("files: all referenced images and depth maps present and consistent")?;
         } else {
-            println!("problems ({}):", problems.len());
+            outln!("problems ({}):", problems.len())?;
             for p in problems.iter().take(50) {
-                println!("  - {p}");
+                outln!("  - {p}")?;
             }
             if problems.len() > 50 {
-                println!("  ... and {} more", problems.len() - 50);
+                outln!("  ... and {} more", problems.len() - 50)?;
             }
         }
     }

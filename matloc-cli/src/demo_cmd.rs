@@ -48,22 +48,22 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
     let map = args.out.join("map");
     let report = args.out.join("report");
     if matloc_data::read_dataset(&data).is_ok() {
-        println!("[1/3] dataset {} exists, reusing it", data.display());
+        outln!("[1/3] dataset {} exists, reusing it", data.display())?;
     } else {
-        println!(
+        outln!(
             "[1/3] synthesising preset `{}` into {}",
             args.preset,
             data.display()
-        );
+        )?;
         synth_cmd::run(&args.preset, &data, None, quiet)?;
     }
     let config = match &args.config {
         Some(p) => map_cmd::read_config(p)?,
         None => demo_config(),
     };
-    println!("[2/3] building the map in {}", map.display());
+    outln!("[2/3] building the map in {}", map.display())?;
     map_cmd::build(&data, &map, &config, quiet).context("map build")?;
-    println!("[3/3] localizing the test queries with every method");
+    outln!("[3/3] localizing the test queries with every method")?;
     let path = eval_cmd::run(
         &EvalArgs {
             map,
@@ -78,12 +78,12 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
     let text = std::fs::read_to_string(&path).unwrap_or_default();
     if let Some(i) = text.find("## Table 1") {
         let end = text.find("## Plots").unwrap_or(text.len());
-        println!("\n{}", text[i..end].trim_end());
+        outln!("\n{}", text[i..end].trim_end())?;
     }
-    println!(
+    outln!(
         "\ndemo finished in {:.1} min; report: {}",
         t0.elapsed().as_secs_f64() / 60.0,
         path.display()
-    );
+    )?;
     Ok(())
 }

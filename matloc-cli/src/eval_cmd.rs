@@ -92,7 +92,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
         }
         bar.finish_and_clear();
         let summary = summarize(method.name(), &outcomes);
-        println!(
+        outln!(
             "{:<17} {} queries in {:>6.1} s: median {:.3} m / {:.3}°, refused {:.0} %, {:.3} s/query",
             method.name(),
             results.len(),
@@ -101,7 +101,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
             summary.median_rotation_deg,
             100.0 * summary.refusal_rate,
             summary.mean_seconds
-        );
+        )?;
         runs.push(MethodRun {
             method,
             results,

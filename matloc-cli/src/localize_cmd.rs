@@ -1,6 +1,5 @@
 //! `matloc localize`: localize query images against a map, one JSON line per query.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
@@ -225,7 +224,6 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
         .with_context(|| format!("opening map {}", args.map.display()))?;
     let queries = load_queries(args, &map)?;
     let options = MethodOptions::default();
-    let stdout = std::io::stdout();
     for q in &queries {
         let r = localize_with(&map, args.method, &q.name, &q.image, &q.camera, &options)
             .with_context(|| format!("localizing {}", q.name))?;
@@ -234,8 +232,7 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
             line["error_translation_m"] = translation_error_m(&est, &gt).into();
             line["error_rotation_deg"] = rotation_error_deg(&est, &gt).into();
         }
-        let mut out = stdout.lock();
-        writeln!(out, "{}", serde_json::to_string(&line)?)?;
+        outln!("{}", serde_json::to_string(&line)?)?;
     }
     Ok(())
 }

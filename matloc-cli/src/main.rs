@@ -1,6 +1,9 @@
 //! `matloc`: the command-line front end of matloc-nerf. It only parses arguments, shows progress
 //! and prints reports; all work happens in the library crates.
 
+#[macro_use]
+mod output;
+
 mod dataset_cmd;
 mod demo_cmd;
 mod eval_cmd;
@@ -114,13 +117,15 @@ fn main() -> ExitCode {
         Command::Match(args) => match_cmd::run(&args, cli.quiet),
         Command::Map { command } => map_cmd::run(&command, cli.quiet),
         Command::Localize(args) => localize_cmd::run(&args),
-        Command::Eval(args) => eval_cmd::run(&args, cli.quiet).map(|p| {
-            println!("report: {}", p.display());
-        }),
+        Command::Eval(args) => {
+            eval_cmd::run(&args, cli.quiet).and_then(|p| outln!("report: {}", p.display()))
+        }
         Command::Demo(args) => demo_cmd::run(&args, cli.quiet),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
+        // The reader of stdout went away (`matloc … | head`): done, as far as it cares.
+        Err(err) if output::is_closed_stdout(&err) => ExitCode::SUCCESS,
         Err(err) => {
             tracing::debug!(error = ?err, "command failed");
             eprintln!("error: {err:#}");

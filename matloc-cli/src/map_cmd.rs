@@ -80,6 +80,8 @@ pub fn build(data: &Path, out: &Path, config: &MapConfig, quiet: bool) -> Result
     // `StageProgress` goes to the one started last.
     let bars = MultiProgress::new();
     let mut running: Vec<(String, ProgressBar)> = Vec::new();
+    // A stdout that cannot be written does not stop the build; it is reported at the end.
+    let mut out_err: Option<anyhow::Error> = None;
     let mut on_event = |e: &BuildEvent| match e {
         BuildEvent::StageStarted { name, total } => {
             let b = bars.add(progress::bar(*total, name, quiet));
@@ -117,18 +119,23 @@ pub fn build(data: &Path, out: &Path, config: &MapConfig, quiet: bool) -> Result
                 format!("{name:<14} {seconds:>8.1} s")
             };
             // Printed with the live bars out of the way, not through them.
-            bars.suspend(|| println!("{line}"));
+            if let Err(e) = bars.suspend(|| outln!("{line}")) {
+                out_err.get_or_insert(e);
+            }
         }
     };
     let map = build_map(&dataset, out, config, &mut on_event)
         .with_context(|| format!("building map {}", out.display()))?;
-    println!(
+    if let Some(e) = out_err {
+        return Err(e);
+    }
+    outln!(
         "map {} complete in {:.1} s ({} blocks, {:.1} MB)",
         out.display(),
         t0.elapsed().as_secs_f64(),
         map.manifest().blocks.len(),
         map.total_bytes() as f64 / 1e6
-    );
+    )?;
     Ok(())
 }
 
@@ -168,19 +175,19 @@ fn info(root: &Path, json: bool) -> Result<()> {
             "bytes": map.total_bytes(),
             "checksums": match &verified { Ok(()) => "ok".to_string(), Err(e) => e.clone() },
         });
-        println!("{}", serde_json::to_string_pretty(&doc)?);
+        outln!("{}", serde_json::to_string_pretty(&doc)?)?;
         return Ok(());
     }
-    println!(
+    outln!(
         "map {} (format v{}, {})",
         root.display(),
         m.version,
         m.created_by
-    );
+    )?;
     if let Some(d) = m.scene.get("dataset") {
-        println!("  dataset      {}", d.as_str().unwrap_or("?"));
+        outln!("  dataset      {}", d.as_str().unwrap_or("?"))?;
     }
-    println!(
+    outln!(
         "  files        {} ({:.1} MB), checksums {}",
         m.files.len(),
         map.total_bytes() as f64 / 1e6,
@@ -188,16 +195,16 @@ fn info(root: &Path, json: bool) -> Result<()> {
             Ok(()) => "ok".to_string(),
             Err(e) => format!("FAILED: {e}"),
         }
-    );
-    println!(
+    )?;
+    outln!(
         "  status       {}",
         if missing.is_empty() {
             "complete".to_string()
         } else {
             format!("incomplete, next stage {}", missing[0])
         }
-    );
-    println!("  blocks:");
+    )?;
+    outln!("  blocks:")?;
     for (b, e) in m.blocks.iter().enumerate() {
         let bytes: u64 = m
             .files
@@ -210,7 +217,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
             e.bounds_max[1] - e.bounds_min[1],
             e.bounds_max[2] - e.bounds_min[2],
         ];
-        println!(
+        outln!(
             "    {b}: {} poses, box {:.0}×{:.0}×{:.0} m, {:.1} MB, selected dims {:?}",
             e.num_poses,
             ext[0],
@@ -218,10 +225,10 @@ fn info(root: &Path, json: bool) -> Result<()> {
             ext[2],
             bytes as f64 / 1e6,
             e.selected_dims
-        );
+        )?;
     }
     if let Some(c) = &calibration {
-        println!(
+        outln!(
             "  calibration  {} attempts ({} correct), rule accuracy {:.0} %, accept threshold {}, \
              accepted poses within {} of their coarse attitude",
             c.samples.len(),
@@ -230,11 +237,11 @@ fn info(root: &Path, json: bool) -> Result<()> {
             c.model.accept_threshold,
             c.max_accept_rotation_deg
                 .map_or("the configured bound".to_string(), |d| format!("{d:.1}°"))
-        );
+        )?;
     }
-    println!("  stages:");
+    outln!("  stages:")?;
     for s in &m.stages {
-        println!("    {:<14} {:>8.1} s", s.name, s.seconds);
+        outln!("    {:<14} {:>8.1} s", s.name, s.seconds)?;
     }
     Ok(())
 }

@@ -192,14 +192,14 @@ pub fn run(args: &MatchArgs, quiet: bool) -> Result<()> {
                 .iter()
                 .map(|r| r.counts.surface)
                 .sum();
-            println!(
+            outln!(
                 "{} pairs from {} views ({:.0} % of rendered surface cells) in {:.1} s -> {}",
                 set.len(),
                 sc.train.len(),
                 100.0 * kept as f64 / surface.max(1) as f64,
                 t0.elapsed().as_secs_f64(),
                 out.display()
-            );
+            )?;
             Ok(())
         }
         MatchCommand::Eval(e) => match (&e.map, &e.data) {
@@ -255,7 +255,7 @@ fn eval_map(
         },
     )?;
     bar.finish_and_clear();
-    println!(
+    outln!(
         "map {}: {} test queries x {} starts ({} in all), start perturbation uniform ball {} m / {} deg (median start error {:.2} m / {:.2} deg); the map's encoder, matching window and localizer options, every pose kept ({:.0} s)",
         map.display(),
         table.queries,
@@ -266,13 +266,13 @@ fn eval_map(
         table.start_t_m,
         table.start_r_deg,
         t0.elapsed().as_secs_f64()
-    );
+    )?;
     for r in &table.rows {
-        println!("{}: dims per block {:?}", r.name, r.dims);
+        outln!("{}: dims per block {:?}", r.name, r.dims)?;
     }
-    print!("{}", matloc_pipeline::eval::table3::markdown(&table));
-    println!();
-    print!("{}", matloc_pipeline::eval::table3::paired_markdown(&table));
+    out!("{}", matloc_pipeline::eval::table3::markdown(&table))?;
+    outln!()?;
+    out!("{}", matloc_pipeline::eval::table3::paired_markdown(&table))?;
     if let Some(path) = &args.json {
         matloc_core::fsutil::write_atomic(path, serde_json::to_string_pretty(&table)?.as_bytes())?;
     }
@@ -322,7 +322,7 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     if let (Some(path), Some(enc)) = (&args.encoder_out, &encoder) {
         enc.save(path)?;
     }
-    print!("{}", table3_field::markdown(&table));
+    out!("{}", table3_field::markdown(&table))?;
     if let Some(path) = &args.json {
         matloc_core::fsutil::write_atomic(path, serde_json::to_string_pretty(&table)?.as_bytes())?;
     }

@@ -159,12 +159,12 @@ fn train(
     )
     .with_context(|| format!("training into {}", out.display()))?;
     pb.finish_and_clear();
-    println!(
+    outln!(
         "trained {} steps ({} training images) → {}",
         model.step(),
         model.config().field.num_images,
         out.display()
-    );
+    )?;
     Ok(())
 }
 
@@ -216,7 +216,7 @@ fn render(
     })?;
     pb.finish_and_clear();
     for (i, v) in report.views.iter().enumerate() {
-        println!(
+        outln!(
             "test_{i:03}  PSNR {:6.2} dB  SSIM {:.4}  depth err {}  ({:.2} s)  {}",
             v.psnr,
             v.ssim,
@@ -224,16 +224,16 @@ fn render(
                 .map_or("-".into(), |d| format!("{:.2} %", 100.0 * d)),
             v.render_s,
             v.image.display()
-        );
+        )?;
     }
-    println!(
+    outln!(
         "mean PSNR {:.2} dB, mean SSIM {:.4}, median depth error {}",
         report.mean_psnr,
         report.mean_ssim,
         report
             .median_depth_rel_error
             .map_or("-".into(), |d| format!("{:.2} %", 100.0 * d))
-    );
+    )?;
     let json = serde_json::json!({
         "model": model_dir,
         "step": model.step(),

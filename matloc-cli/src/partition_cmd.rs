@@ -187,7 +187,7 @@ pub fn run(args: &PartitionArgs, quiet: bool) -> Result<()> {
     );
     draw(&partition, &train, &test, &title, &plot_path)?;
 
-    println!(
+    outln!(
         "{} partition of {} ({} train poses, {} test poses, {} sample points, voxel {} m)",
         partitioner.name(),
         dataset.root.display(),
@@ -195,8 +195,8 @@ pub fn run(args: &PartitionArgs, quiet: bool) -> Result<()> {
         test.len(),
         n_points,
         partition.voxel_size
-    );
-    println!(
+    )?;
+    outln!(
         "{:>5} {:>6} {:>28} {:>22} {:>14} {:>14}",
         "block",
         "poses",
@@ -204,10 +204,10 @@ pub fn run(args: &PartitionArgs, quiet: bool) -> Result<()> {
         "box size x, y, z (m)",
         "sampling m3",
         "occupied m3"
-    );
+    )?;
     for b in &partition.blocks {
         let s = [0, 1, 2].map(|a| b.bounds.max[a] - b.bounds.min[a]);
-        println!(
+        outln!(
             "{:>5} {:>6} {:>28} {:>22} {:>14.0} {:>14.0}",
             b.id,
             b.pose_ids.len(),
@@ -218,27 +218,27 @@ pub fn run(args: &PartitionArgs, quiet: bool) -> Result<()> {
             format!("{:.0}, {:.0}, {:.0}", s[0], s[1], s[2]),
             b.sampling_volume_m3,
             b.occupied_volume_m3
-        );
+        )?;
     }
     let vols: Vec<f64> = partition
         .blocks
         .iter()
         .map(|b| b.sampling_volume_m3)
         .collect();
-    println!(
+    outln!(
         "mean sampling volume per block: {:.0} m3; scene box: {:.0} m3",
         vols.iter().sum::<f64>() / vols.len().max(1) as f64,
         partition.scene_bounds.volume()
-    );
-    println!(
+    )?;
+    outln!(
         "mean Num_NeRF(P): train {nn_train:.3}, test {nn_test:.3}; test samples inside their block box: {:.1} %",
         100.0 * cov_test
-    );
-    println!(
+    )?;
+    outln!(
         "time: sampling {sample_secs:.2} s, partition {part_secs:.2} s, Num_NeRF {eval_secs:.2} s, total {:.2} s",
         start.elapsed().as_secs_f64()
-    );
-    println!("wrote {} and {}", out.display(), plot_path.display());
+    )?;
+    outln!("wrote {} and {}", out.display(), plot_path.display())?;
     Ok(())
 }
 

@@ -161,7 +161,7 @@ fn train(args: &TrainArgs, quiet: bool) -> Result<()> {
         let part = matloc_partition::read_partition(p)?;
         groups.attach_blocks(|i| part.block_of_member(train_idx[i]));
     }
-    println!(
+    outln!(
         "{} training poses → {} spatial clusters (radius {:.1} m), {} pose groups (sizes {:?})",
         frames.poses.len(),
         groups.num_spatial,
@@ -172,7 +172,7 @@ fn train(args: &TrainArgs, quiet: bool) -> Result<()> {
             .iter()
             .map(|g| g.members.len())
             .collect::<Vec<_>>()
-    );
+    )?;
     let cfg = TrainConfig {
         epochs: args.epochs,
         seed: args.seed,
@@ -191,8 +191,8 @@ fn train(args: &TrainArgs, quiet: bool) -> Result<()> {
             last = r.loss;
             bar.set_message(format!("loss {:.3}", r.loss));
             bar.inc(1);
-            if quiet && (r.epoch % 10 == 0 || r.epoch + 1 == cfg.epochs) {
-                println!("epoch {:>3} loss {:.4}", r.epoch, r.loss);
+            if r.epoch % 10 == 0 || r.epoch + 1 == cfg.epochs {
+                tracing::info!(epoch = r.epoch, loss = r.loss, "place classifier training");
             }
         },
     )?;
@@ -205,12 +205,12 @@ fn train(args: &TrainArgs, quiet: bool) -> Result<()> {
         })
     });
     model.save(&out)?;
-    println!(
+    outln!(
         "trained {:?} in {train_secs:.1} s (final loss {last:.4}; total {:.1} s); wrote {}",
         model.method(),
         t0.elapsed().as_secs_f64(),
         out.display()
-    );
+    )?;
     Ok(())
 }
 
@@ -224,7 +224,7 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
     }
     let test = load_frames(&dataset, &test_idx, "loading", quiet)?;
     let train_camera = dataset.frames[train_idx.first().copied().unwrap_or(0)].camera;
-    println!("{}", table4::table_header());
+    outln!("{}", table4::table_header())?;
     let mut oracle = None;
     for (k, dir) in args.model.iter().enumerate() {
         let mut model =
@@ -241,12 +241,12 @@ fn eval(args: &EvalArgs, quiet: bool) -> Result<()> {
         for variant in variants {
             let row = table4::evaluate(&mut model, variant, &test, &train_camera, args.min_overlap)
                 .with_context(|| format!("evaluating {}", dir.display()))?;
-            println!("{}", table4::table_line(&short(dir), &row));
+            outln!("{}", table4::table_line(&short(dir), &row))?;
         }
     }
-    println!("{}", table4::table_footer(test.len(), args.min_overlap));
+    outln!("{}", table4::table_footer(test.len(), args.min_overlap))?;
     if let Some(o) = oracle {
-        println!("{}", table4::oracle_line(o));
+        outln!("{}", table4::oracle_line(o))?;
     }
     Ok(())
 }

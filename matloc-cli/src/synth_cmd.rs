@@ -26,7 +26,7 @@ pub fn run(preset: &str, out: &Path, seed: Option<u64>, quiet: bool) -> Result<(
     bar.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
     let n = dataset.frames.len();
-    println!(
+    outln!(
         "wrote {} ({} train, {} test images, seed {}) to {} in {:.1} s ({:.1} images/s)",
         preset,
         dataset.split(Split::Train).count(),
@@ -35,6 +35,6 @@ pub fn run(preset: &str, out: &Path, seed: Option<u64>, quiet: bool) -> Result<(
         out.join("transforms.json").display(),
         secs,
         n as f64 / secs.max(1e-9),
-    );
+    )?;
     Ok(())
 }

@@ -86,3 +86,43 @@ fn info_on_missing_or_malformed_dataset_is_a_clear_error() {
     assert!(!t.contains("panicked"), "{t}");
     assert!(Path::new(&bad).exists());
 }
+
+#[test]
+fn a_closed_or_full_stdout_is_handled_without_a_panic() {
+    use std::process::{Command, Stdio};
+
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("tiny");
+    let o = matloc(&["synth", "--preset", "tiny", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+
+    // A reader that is gone before the first line is written (`matloc dataset info D | true`;
+    // the command reads and checks every image first): the command ends quietly, successfully.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_matloc"))
+        .args(["dataset", "info", out.to_str().unwrap(), "--quiet"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "exit {:?}: {err}", o.status);
+    assert!(!err.contains("panicked"), "{err}");
+
+    // A full device: an error that names stdout, exit status 1, no panic.
+    if std::path::Path::new("/dev/full").exists() {
+        let full = std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap();
+        let o = Command::new(env!("CARGO_BIN_EXE_matloc"))
+            .args(["dataset", "info", out.to_str().unwrap(), "--quiet"])
+            .stdout(full)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(err.contains("stdout") && !err.contains("panicked"), "{err}");
+    }
+}

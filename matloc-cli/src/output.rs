@@ -1,0 +1,61 @@
+//! Command results on stdout. A reader that closes the pipe early (`matloc dataset info D |
+//! head -1`) ends the command quietly with success, as `cat` or `grep` would; any other write
+//! error (e.g. a full disk) is an error that says stdout could not be written.
+
+use std::io::{ErrorKind, Write};
+
+/// The reader of stdout went away: the command stops, successfully and without a message.
+#[derive(Debug, thiserror::Error)]
+#[error("stdout was closed by its reader")]
+pub struct StdoutClosed;
+
+/// Writes formatted text to stdout and flushes it.
+pub fn write(args: std::fmt::Arguments<'_>) -> anyhow::Result<()> {
+    let mut out = std::io::stdout().lock();
+    match out.write_fmt(args).and_then(|()| out.flush()) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == ErrorKind::BrokenPipe => Err(StdoutClosed.into()),
+        Err(e) => Err(anyhow::Error::new(e).context("writing to stdout")),
+    }
+}
+
+/// Whether `err` (anywhere in its chain) is a closed stdout.
+pub fn is_closed_stdout(err: &anyhow::Error) -> bool {
+    err.chain().any(|e| {
+        e.is::<StdoutClosed>()
+            || e.downcast_ref::<std::io::Error>()
+                .is_some_and(|io| io.kind() == ErrorKind::BrokenPipe)
+    })
+}
+
+/// `println!` that returns `anyhow::Result<()>` instead of panicking on a closed or full stdout.
+macro_rules! outln {
+    () => {
+        $crate::output::write(format_args!("\n"))
+    };
+    ($($arg:tt)*) => {
+        $crate::output::write(format_args!("{}\n", format_args!($($arg)*)))
+    };
+}
+
+/// `print!` that returns `anyhow::Result<()>` instead of panicking on a closed or full stdout.
+macro_rules! out {
+    ($($arg:tt)*) => {
+        $crate::output::write(format_args!($($arg)*))
+    };
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_broken_pipe_anywhere_in_the_chain_is_a_closed_stdout() {
+        let e: anyhow::Error = StdoutClosed.into();
+        assert!(is_closed_stdout(&e.context("printing the table")));
+        let io = std::io::Error::from(ErrorKind::BrokenPipe);
+        assert!(is_closed_stdout(&anyhow::Error::new(io)));
+        let full = std::io::Error::from(ErrorKind::StorageFull);
+        assert!(!is_closed_stdout(&anyhow::Error::new(full)));
+    }
+}
