@@ -139,11 +139,6 @@ pub fn to_map_resolution(
     Ok((resized, rescaled))
 }
 
-/// The camera the map was built from (its first training image's), if recorded.
-pub fn map_camera(map: &LoadedMap) -> Option<Camera> {
-    map.camera()
-}
-
 fn frame_of<'a>(dataset: &'a Dataset, path: &Path) -> Option<&'a matloc_data::dataset::Frame> {
     let canon = |p: &Path| std::fs::canonicalize(p).ok();
     let want = canon(path);
@@ -166,7 +161,7 @@ fn load_queries(args: &LocalizeArgs, map: &LoadedMap) -> Result<Vec<Query>> {
         Some(p) => Some(read_intrinsics(p)?),
         None => None,
     };
-    let target = map_camera(map);
+    let target = map.camera();
     let mut out = Vec::new();
     for path in &args.images {
         let name = path.display().to_string();
@@ -197,7 +192,7 @@ fn load_queries(args: &LocalizeArgs, map: &LoadedMap) -> Result<Vec<Query>> {
 
 /// The test queries of a dataset.
 pub fn dataset_queries(dataset: &Dataset, map: &LoadedMap, limit: usize) -> Result<Vec<Query>> {
-    let target = map_camera(map);
+    let target = map.camera();
     let mut out = Vec::new();
     for f in dataset
         .split(Split::Test)

@@ -7,6 +7,7 @@ use std::fmt;
 use std::str::FromStr;
 use std::time::Instant;
 
+use matloc_core::pose::camera_center;
 use matloc_core::{Camera, Image, Pose};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -109,10 +110,6 @@ pub struct MethodOptions {
     pub inerf: InerfOptions,
 }
 
-fn center(p: &Pose) -> [f64; 3] {
-    matloc_core::pose::camera_center(p).coords.into()
-}
-
 /// Localizes `image` (taken with `camera`) with `method` on `map`.
 pub fn localize_with(
     map: &LoadedMap,
@@ -129,7 +126,10 @@ pub fn localize_with(
             name: name.to_string(),
             method,
             localized: loc.cam_from_world.is_some(),
-            camera_center: loc.cam_from_world.as_ref().map(center),
+            camera_center: loc
+                .cam_from_world
+                .as_ref()
+                .map(|p| camera_center(p).coords.into()),
             cam_from_world: loc.cam_from_world,
             confidence: Some(loc.confidence),
             inliers: loc.inliers,
@@ -182,7 +182,10 @@ pub fn localize_with(
         name: name.to_string(),
         method,
         localized: out.cam_from_world.is_some(),
-        camera_center: out.cam_from_world.as_ref().map(center),
+        camera_center: out
+            .cam_from_world
+            .as_ref()
+            .map(|p| camera_center(p).coords.into()),
         cam_from_world: out.cam_from_world,
         confidence: None,
         inliers: out.inliers,

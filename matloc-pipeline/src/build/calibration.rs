@@ -5,8 +5,6 @@
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_data::Dataset;
 use matloc_partition::Partition;
-use matloc_place::{PlaceModel, PlacePredictor};
-use matloc_pnp::LoRansacPnp;
 
 use crate::build::common::{BuildEvent, load_image, spaced, stage, views_of_block};
 use crate::config::{CalibrationConfig, MapConfig};
@@ -14,8 +12,8 @@ use crate::error::PipelineError;
 use crate::localizer::FixedPlace;
 use crate::localizer::confidence::{ConfidenceModel, Evidence};
 use crate::localizer::options::LocalizeOptions;
-use crate::map::layout::{CONFIDENCE_FILE, CalibrationRecord, PLACE_DIR};
-use crate::map::load::{LoadedBlocks, NerfMapComponents};
+use crate::map::layout::{CONFIDENCE_FILE, CalibrationRecord};
+use crate::map::load::{LoadedBlocks, MapComponents, NerfMapComponents};
 use crate::map::manifest::MapDir;
 
 /// Localizes the held-out views and stores the fitted confidence.
@@ -39,10 +37,10 @@ pub fn run(
         held.len() as u64,
         progress,
         &mut |map, progress| {
-            let loaded = LoadedBlocks::load(map, nb, &config.localize, &NerfMapComponents)?;
-            let mut place = PlaceModel::load(&map.path_of(PLACE_DIR)?)?;
-            config.place.configure(&mut place);
-            let solver = LoRansacPnp::new(config.localize.pnp.clone());
+            let components = NerfMapComponents;
+            let loaded = LoadedBlocks::load(map, nb, &config.localize, &components)?;
+            let place = components.place(map, config)?;
+            let solver = components.solver(&config.localize);
             let mut samples = Vec::new();
             let mut corrections = Vec::new();
             for (done, v) in held.iter().enumerate() {
@@ -63,7 +61,7 @@ pub fn run(
                         },
                         ..config.localize.clone()
                     };
-                    let localizer = loaded.localizer(&fixed, &solver, options);
+                    let localizer = loaded.localizer(&fixed, solver.as_ref(), options);
                     let out = localizer.localize(&image, &camera)?;
                     let Some(rep) = out.hypotheses.first() else {
                         continue;

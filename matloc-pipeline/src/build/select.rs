@@ -28,10 +28,7 @@ use crate::config::{MapConfig, RenderScore, RenderSelectConfig, SelectorKind};
 use crate::error::PipelineError;
 use crate::gt::GtPairSet;
 use crate::map::layout::{SelectionRecord, pairs_file, selection_file};
-use crate::map::load::{
-    BlockRenderer, MapBlock, MapComponents, NerfMapComponents, block_matcher, load_encoder,
-    window_px,
-};
+use crate::map::load::{MapBlock, NerfMapComponents, block_matcher, load_encoder};
 use crate::map::manifest::MapDir;
 
 /// Selects block `b`'s dims and records them in the manifest.
@@ -151,19 +148,9 @@ fn render_selection(
     b: usize,
     all_dims: &[usize],
 ) -> Result<SelectionRecord, PipelineError> {
-    let components = NerfMapComponents;
-    let BlockRenderer { renderer, nerf } = components.renderer(map, b, &config.localize)?;
-    let encoder = components.encoder(map, b)?;
-    let window = window_px(map, &config.localize);
-    let matcher = components.matcher(encoder.as_ref(), all_dims, window)?;
-    let block = MapBlock {
-        renderer,
-        nerf,
-        encoder,
-        matcher,
-        dims: all_dims.to_vec(),
-        match_dims: None,
-    };
+    let block = MapBlock::load(map, b, &config.localize, &NerfMapComponents, |_| {
+        (all_dims.to_vec(), None)
+    })?;
     let cfg = &config.select.renders;
     let views = selection_views(&block, dataset, partition, config, b, cfg)?;
     let sel = select_on_renders(

@@ -8,6 +8,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
+use matloc_core::Camera;
 use matloc_encoder::QueryEncoder;
 use matloc_match::nerf_view::NerfViewRenderer;
 use matloc_match::{FeatureStats, Matcher, MnnConfig, MnnMatcher, ViewRenderer};
@@ -58,14 +59,16 @@ pub(crate) fn load_encoder(map: &MapDir, b: usize) -> Result<QueryEncoder, Pipel
 /// The matching window of a map (see [`LocalizeOptions::window_fraction`]), for a grid as
 /// wide as the map's images.
 pub(crate) fn window_px(map: &MapDir, options: &LocalizeOptions) -> Option<f64> {
-    let width = map
-        .manifest()
+    let width = scene_camera(map).map_or(320.0, |c| c.width as f64);
+    (options.window_fraction > 0.0).then_some(options.window_fraction * width)
+}
+
+/// The camera of the map's training images as recorded at build time (the first one's).
+fn scene_camera(map: &MapDir) -> Option<Camera> {
+    map.manifest()
         .scene
         .get("camera")
-        .and_then(|c| c.get("width"))
-        .and_then(|w| w.as_u64())
-        .unwrap_or(320) as f64;
-    (options.window_fraction > 0.0).then_some(options.window_fraction * width)
+        .and_then(|c| serde_json::from_value(c.clone()).ok())
 }
 
 /// A block's renderer as the localizer uses it, and the NeRF behind it when there is one (the
@@ -207,6 +210,30 @@ pub fn block_matcher(
 }
 
 impl MapBlock {
+    /// Loads block `b` with `components`: its renderer (render settings of `options`), its
+    /// encoder, and a matcher windowed as `options` say on the dims `dims` picks from the
+    /// encoder's dims (rendered dims, and the matched subset when smaller).
+    pub fn load(
+        map: &MapDir,
+        b: usize,
+        options: &LocalizeOptions,
+        components: &dyn MapComponents,
+        dims: impl FnOnce(&[usize]) -> (Vec<usize>, Option<Vec<usize>>),
+    ) -> Result<Self, PipelineError> {
+        let BlockRenderer { renderer, nerf } = components.renderer(map, b, options)?;
+        let encoder = components.encoder(map, b)?;
+        let (dims, match_dims) = dims(encoder.dims());
+        let matcher = components.matcher(encoder.as_ref(), &dims, window_px(map, options))?;
+        Ok(MapBlock {
+            renderer,
+            nerf,
+            encoder,
+            matcher,
+            dims,
+            match_dims,
+        })
+    }
+
     /// This block as the localizer sees it.
     pub fn localizer_block(&self) -> LocalizerBlock<'_> {
         LocalizerBlock {
@@ -232,28 +259,18 @@ impl LoadedBlocks {
         options: &LocalizeOptions,
         components: &dyn MapComponents,
     ) -> Result<Self, PipelineError> {
-        let window_px = window_px(map, options);
-        let mut blocks = Vec::with_capacity(n);
-        for b in 0..n {
-            let BlockRenderer { renderer, nerf } = components.renderer(map, b, options)?;
-            let encoder = components.encoder(map, b)?;
-            let sel: SelectionRecord = map.read_json(&selection_file(b))?;
-            let (dims, match_dims) =
-                if options.refine_on_all_dims && sel.dims.len() < encoder.dims().len() {
-                    (encoder.dims().to_vec(), Some(sel.dims))
-                } else {
-                    (sel.dims, None)
-                };
-            let matcher = components.matcher(encoder.as_ref(), &dims, window_px)?;
-            blocks.push(MapBlock {
-                renderer,
-                nerf,
-                encoder,
-                matcher,
-                dims,
-                match_dims,
-            });
-        }
+        let blocks = (0..n)
+            .map(|b| {
+                let sel: SelectionRecord = map.read_json(&selection_file(b))?;
+                MapBlock::load(map, b, options, components, |encoded| {
+                    if options.refine_on_all_dims && sel.dims.len() < encoded.len() {
+                        (encoded.to_vec(), Some(sel.dims))
+                    } else {
+                        (sel.dims, None)
+                    }
+                })
+            })
+            .collect::<Result<_, PipelineError>>()?;
         Ok(Self(blocks))
     }
 
@@ -353,12 +370,8 @@ impl LoadedMap {
 
     /// The camera of the map's training images (the first one's), as recorded at build time:
     /// the resolution its query encoders were trained at.
-    pub fn camera(&self) -> Option<matloc_core::Camera> {
-        self.dir
-            .manifest()
-            .scene
-            .get("camera")
-            .and_then(|c| serde_json::from_value(c.clone()).ok())
+    pub fn camera(&self) -> Option<Camera> {
+        scene_camera(&self.dir)
     }
 
     /// The NeRF of block `b`, when its renderer is one.
