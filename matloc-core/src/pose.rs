@@ -7,9 +7,11 @@
 //! |---|---|---|
 //! | nerfstudio / OpenGL `transform_matrix` | camera-to-world 4×4 | x right, y up, z back |
 //! | COLMAP `images.txt` | world-to-camera, quaternion (w, x, y, z) + t | OpenCV |
-//! | Mega-NeRF / Mill-19 | camera-to-world 3×4 | x down, y right, z back |
+//! | Mega-NeRF `camera_in_drb` | camera-to-world 3×4 | x down, y right, z back |
 //!
 //! World coordinates are passed through unchanged; only the camera axes are re-expressed.
+//! Mega-NeRF's metadata files store `camera_in_drb` with its columns reordered to
+//! `[right, −down, back]`, i.e. OpenGL camera axes (see `matloc_data::meganerf`).
 
 use nalgebra::{
     Isometry3, Matrix3, Matrix3x4, Matrix4, Point3, Quaternion, Rotation3, Translation3,

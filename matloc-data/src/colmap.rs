@@ -28,7 +28,7 @@ use matloc_core::pose::{cam_from_world_from_colmap, colmap_from_cam_from_world};
 use matloc_core::{Camera, CameraError, Distortion, Pose, PoseError};
 use thiserror::Error;
 
-use crate::dataset::{Dataset, Frame, SceneMetadata, Split};
+use crate::dataset::{Dataset, Frame, PointSource, SceneMetadata, Split};
 use matloc_core::fsutil::write_atomic;
 
 /// The COLMAP camera models this crate reads.
@@ -304,6 +304,18 @@ pub enum ColmapError {
         /// The missing file.
         path: PathBuf,
     },
+    /// A point's track names an image the model does not have.
+    #[error(
+        "{path}: point3D {point_id} is observed by image {image_id}, which is not in the model"
+    )]
+    UnknownTrackImage {
+        /// The `points3D` file.
+        path: PathBuf,
+        /// The point.
+        point_id: u64,
+        /// The missing image id.
+        image_id: u32,
+    },
     /// Reading or writing failed at the operating-system level.
     #[error("I/O error on {path}: {source}")]
     Io {
@@ -507,6 +519,15 @@ pub fn read_colmap_dir(dir: &Path, format: ColmapFormat) -> Result<ColmapModel, 
             },
         ),
     };
+    for p in points3d.values() {
+        if let Some(t) = p.track.iter().find(|t| !images.contains_key(&t.image_id)) {
+            return Err(ColmapError::UnknownTrackImage {
+                path: points_path,
+                point_id: p.id,
+                image_id: t.image_id,
+            });
+        }
+    }
     for image in images.values() {
         if !cameras.contains_key(&image.camera_id) {
             return Err(ColmapError::UnknownCamera {
@@ -530,7 +551,25 @@ pub fn read_colmap_dataset(path: &Path) -> Result<Dataset, ColmapError> {
         path: path.to_path_buf(),
     })?;
     let model = read_colmap_dir(&dir, format)?;
-    model.to_dataset(&default_image_dir(&dir))
+    let mut dataset = model.to_dataset(&default_image_dir(&dir))?;
+    // The points are re-read on demand (crate::points::read_points) rather than kept here.
+    if !model.points3d.is_empty() {
+        let mut names: Vec<(&str, u32)> = model
+            .images
+            .values()
+            .map(|i| (i.name.as_str(), i.id))
+            .collect();
+        names.sort();
+        dataset.points = Some(PointSource::Colmap {
+            path: dir.join(format!("points3D.{}", format.ext())),
+            frame_of_image: names
+                .into_iter()
+                .enumerate()
+                .map(|(frame, (_, id))| (id, frame))
+                .collect(),
+        });
+    }
+    Ok(dataset)
 }
 
 impl ColmapModel {
@@ -567,6 +606,7 @@ impl ColmapModel {
         Ok(Dataset {
             root: image_dir.to_path_buf(),
             frames,
+            points: None,
             metadata: SceneMetadata::default(),
         })
     }

@@ -1,5 +1,6 @@
 //! The in-memory dataset every reader produces and every writer consumes.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use matloc_core::Camera;
@@ -62,6 +63,52 @@ pub struct SceneMetadata {
     pub preset: Option<String>,
     /// Seed of a synthetic scene.
     pub seed: Option<u64>,
+    /// nerfstudio's `applied_transform`: the 3×4 `[R | t]` that maps a point of the original
+    /// (COLMAP) world into this dataset's world, `x_world = R x_original + t` (see
+    /// [`crate::nerfstudio::original_cam_from_world`]). nerfstudio keeps it as a top-level
+    /// key of `transforms.json`, and so does [`crate::nerfstudio::write_nerfstudio`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub applied_transform: Option<[[f64; 4]; 3]>,
+    /// The Mega-NeRF normalisation that [`crate::meganerf`] undid when reading.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mega_nerf: Option<MegaNerfCoordinates>,
+}
+
+/// Mega-NeRF's `coordinates.pt`: its files hold positions `(x − origin_drb) / pose_scale_factor`
+/// where `x` is the metric position this dataset holds.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MegaNerfCoordinates {
+    /// Origin of the normalised world, metres, in this dataset's world.
+    pub origin_drb: [f64; 3],
+    /// Metres per normalised unit.
+    pub pose_scale_factor: f64,
+}
+
+/// Where a dataset keeps a sparse point cloud of its scene, read on demand
+/// ([`crate::points::read_points`]) by whatever needs a surface without depth maps.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PointSource {
+    /// A COLMAP `points3D.txt` / `points3D.bin` whose tracks name COLMAP image ids.
+    Colmap {
+        /// The `points3D` file.
+        path: PathBuf,
+        /// COLMAP image id → index in [`Dataset::frames`].
+        frame_of_image: BTreeMap<u32, usize>,
+    },
+    /// A PLY point cloud without tracks (nerfstudio's `ply_file_path`, `sparse_pc.ply`).
+    Ply {
+        /// The `.ply` file.
+        path: PathBuf,
+    },
+}
+
+impl PointSource {
+    /// The file the points are read from.
+    pub fn path(&self) -> &Path {
+        match self {
+            PointSource::Colmap { path, .. } | PointSource::Ply { path } => path,
+        }
+    }
 }
 
 /// A set of posed images with a root directory that relative paths resolve against.
@@ -73,6 +120,8 @@ pub struct Dataset {
     pub frames: Vec<Frame>,
     /// Optional scene facts.
     pub metadata: SceneMetadata,
+    /// The dataset's sparse point cloud, when it has one.
+    pub points: Option<PointSource>,
 }
 
 impl Dataset {

@@ -7,7 +7,9 @@ use thiserror::Error;
 
 use crate::colmap::ColmapError;
 use crate::images::ImageLoadError;
+use crate::meganerf::MegaNerfError;
 use crate::nerfstudio::NerfstudioError;
+use crate::ply::PlyError;
 
 /// Errors raised when reading a dataset of any supported format.
 #[derive(Debug, Error)]
@@ -18,9 +20,10 @@ pub enum DataError {
         /// The path given.
         path: PathBuf,
     },
-    /// The path exists but holds neither a nerfstudio nor a COLMAP dataset.
+    /// The path exists but holds no dataset of a supported format.
     #[error(
-        "{path} is neither a nerfstudio dataset (transforms.json, transforms_{{train,val,test}}.json) \
+        "{path} is neither a nerfstudio dataset (transforms.json, transforms_{{train,val,test}}.json), \
+         a Mega-NeRF dataset (coordinates.pt, train/metadata) \
          nor a COLMAP model (cameras.bin|txt in it, sparse/0, sparse or colmap/sparse/0)"
     )]
     UnknownFormat {
@@ -33,7 +36,13 @@ pub enum DataError {
     /// Reading a COLMAP model failed.
     #[error(transparent)]
     Colmap(#[from] ColmapError),
+    /// Reading a Mega-NeRF dataset failed.
+    #[error(transparent)]
+    MegaNerf(#[from] MegaNerfError),
     /// Reading an image or depth map failed.
     #[error(transparent)]
     Image(#[from] ImageLoadError),
+    /// Reading a PLY point cloud failed.
+    #[error(transparent)]
+    Ply(#[from] PlyError),
 }

@@ -259,15 +259,63 @@ pub fn box_downscaled_camera(camera: &Camera, factor: u32) -> Camera {
     }
 }
 
+/// Integer box-downscale factor that brings the longer side of a `width × height` image to
+/// at most `max_side` (`1` when it already is, or when `max_side` is `None`).
+pub fn working_factor(width: u32, height: u32, max_side: Option<u32>) -> u32 {
+    match max_side {
+        Some(m) if m > 0 => width.max(height).div_ceil(m).max(1),
+        _ => 1,
+    }
+}
+
+/// The dataset at one working resolution: every frame's intrinsics are first fitted to the
+/// size its image file really has (read from the header, so a pre-downscaled `images_4/` with
+/// full-size intrinsics is handled, and an image whose aspect disagrees with its intrinsics is
+/// an error naming it), then box-downscaled by the integer factor that brings the longer side
+/// to at most `max_side`. [`load_frame_image`] then returns images of exactly these cameras,
+/// so every stage that loads through it works at one size, and a full-size image is only ever
+/// held while it is being reduced.
+pub fn working_dataset(
+    dataset: &Dataset,
+    max_side: Option<u32>,
+) -> Result<Dataset, ImageLoadError> {
+    use rayon::prelude::*;
+    let cameras = dataset
+        .frames
+        .par_iter()
+        .map(|f| {
+            let path = dataset.image_path(f);
+            let (w, h) = image_size(&path)?;
+            let camera = fit_camera_to_size(&f.camera, w, h, &path)?;
+            Ok(box_downscaled_camera(
+                &camera,
+                working_factor(w, h, max_side),
+            ))
+        })
+        .collect::<Result<Vec<Camera>, ImageLoadError>>()?;
+    let mut out = dataset.clone();
+    for (f, c) in out.frames.iter_mut().zip(cameras) {
+        f.camera = c;
+    }
+    Ok(out)
+}
+
 /// Loads a frame's image, fits its intrinsics to the loaded size and optionally downscales
-/// both by an integer factor (`1` = full size). Returns the image and matching camera.
+/// both by an integer factor (`1` = full size). Returns the image and matching camera. An
+/// image that is an integer multiple of the frame's intrinsics (a [`working_dataset`]) is
+/// first box-downscaled to them.
 pub fn load_frame_image(
     dataset: &Dataset,
     frame: &Frame,
     downscale: u32,
 ) -> Result<(Image<f32>, Camera), ImageLoadError> {
     let path = dataset.image_path(frame);
-    let img = load_rgb(&path)?;
+    let mut img = load_rgb(&path)?;
+    let (w, h) = (img.width() as u32, img.height() as u32);
+    let k = w / frame.camera.width.max(1);
+    if k >= 2 && w / k == frame.camera.width && h / k == frame.camera.height {
+        img = downscale_box(&img, k);
+    }
     let camera = fit_camera_to_size(
         &frame.camera,
         img.width() as u32,

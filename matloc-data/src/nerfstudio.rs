@@ -17,23 +17,33 @@
 //! - splits from `train_filenames` / `val_filenames` / `test_filenames` lists, or from separate
 //!   `transforms_{train,val,test}.json` files; frames named in no list are train. A frame in
 //!   several lists gets the last of train, val, test;
+//! - `ply_file_path` (nerfstudio's sparse point cloud), else a `sparse_pc.ply` beside the file,
+//!   recorded as the dataset's [`PointSource::Ply`];
+//! - `applied_transform`, the 3×4 `[R | t]` that `ns-process-data` applied to the COLMAP world
+//!   (`x_here = R x_colmap + t`), kept in [`SceneMetadata::applied_transform`]. nerfstudio
+//!   inverts it as a general matrix; here it must be finite with a rotation `R` (what every
+//!   nerfstudio converter writes), since only a rigid map keeps a pose a pose.
+//!   [`original_cam_from_world`] gives a pose back in the COLMAP world;
 //! - our own `"matloc"` object ([`SceneMetadata`]). Every other key is ignored.
 //!
 //! The writer emits one `transforms.json` with split lists, shared intrinsics when every frame
-//! has the same camera (else per-frame), and the `"matloc"` object; it writes atomically.
+//! has the same camera (else per-frame), `ply_file_path`, `applied_transform` (top level, as
+//! nerfstudio has it), and the `"matloc"` object; it writes atomically.
 
 use std::collections::HashMap;
 use std::fmt;
 use std::io;
 use std::path::{Component, Path, PathBuf};
 
-use matloc_core::pose::{cam_from_world_from_opengl, opengl_from_cam_from_world};
+use matloc_core::pose::{
+    Pose, cam_from_world_from_opengl, opengl_from_cam_from_world, rotation_from_matrix,
+};
 use matloc_core::{Camera, CameraError, Distortion, PoseError};
-use nalgebra::Matrix4;
+use nalgebra::{Matrix3, Matrix4, Vector3};
 use serde_json::{Map, Value};
 use thiserror::Error;
 
-use crate::dataset::{Dataset, Frame, SceneMetadata, Split};
+use crate::dataset::{Dataset, Frame, PointSource, SceneMetadata, Split};
 use crate::images::{ImageLoadError, image_size};
 use matloc_core::fsutil::write_atomic;
 
@@ -201,6 +211,9 @@ pub fn read_nerfstudio(path: &Path) -> Result<Dataset, NerfstudioError> {
                     if all.metadata == SceneMetadata::default() {
                         all.metadata = part.metadata;
                     }
+                    if all.points.is_none() {
+                        all.points = part.points;
+                    }
                 }
             }
         }
@@ -319,14 +332,31 @@ pub fn parse_transforms(
         }
     }
 
-    let metadata = match top.get("matloc") {
+    let mut metadata = match top.get("matloc") {
         None | Some(Value::Null) => SceneMetadata::default(),
         Some(v) => serde_json::from_value(v.clone())
             .map_err(|e| p.invalid(None, "matloc", &e.to_string()))?,
     };
+    match top.get("applied_transform") {
+        None | Some(Value::Null) => {}
+        Some(v) => metadata.applied_transform = Some(p.applied_transform(v)?),
+    }
+    // nerfstudio's point cloud: `ply_file_path`, else a `sparse_pc.ply` beside the file.
+    let points = match top.get("ply_file_path") {
+        None | Some(Value::Null) => {
+            let default = root.join("sparse_pc.ply");
+            default
+                .is_file()
+                .then_some(PointSource::Ply { path: default })
+        }
+        Some(_) => Some(PointSource::Ply {
+            path: root.join(p.string(top, None, "ply_file_path")?),
+        }),
+    };
     Ok(Dataset {
         root: root.to_path_buf(),
         frames,
+        points,
         metadata,
     })
 }
@@ -502,6 +532,33 @@ impl Ctx<'_> {
         Ok(m)
     }
 
+    /// `applied_transform`: 3 rows of 4 numbers (a 4th row `[0, 0, 0, 1]` is accepted), finite,
+    /// with a rotation in the first three columns.
+    fn applied_transform(&self, v: &Value) -> Result<[[f64; 4]; 3], NerfstudioError> {
+        let key = "applied_transform";
+        let shape_err = || self.invalid(None, key, "expected 3 rows of 4 numbers");
+        let rows = v.as_array().ok_or_else(shape_err)?;
+        if rows.len() != 3 && rows.len() != 4 {
+            return Err(shape_err());
+        }
+        let mut m = [[0.0; 4]; 4];
+        for (r, row) in rows.iter().enumerate() {
+            let row = row
+                .as_array()
+                .filter(|a| a.len() == 4)
+                .ok_or_else(shape_err)?;
+            for (c, x) in row.iter().enumerate() {
+                m[r][c] = self.number(x, None, key)?;
+            }
+        }
+        if rows.len() == 4 && m[3] != [0.0, 0.0, 0.0, 1.0] {
+            return Err(self.invalid(None, key, "the 4th row must be [0, 0, 0, 1]"));
+        }
+        let a = [m[0], m[1], m[2]];
+        applied_transform_pose(&a).map_err(|e| self.invalid(None, key, &e.to_string()))?;
+        Ok(a)
+    }
+
     fn camera(
         &self,
         top: &Map<String, Value>,
@@ -602,6 +659,41 @@ impl Ctx<'_> {
     }
 }
 
+/// The rigid transform `world_from_original` that an `applied_transform` `[R | t]` stands for
+/// (`x_world = R x_original + t`); an error when it is not finite or `R` is not a rotation.
+pub fn applied_transform_pose(applied: &[[f64; 4]; 3]) -> Result<Pose, PoseError> {
+    for (row, r) in applied.iter().enumerate() {
+        if !r[3].is_finite() {
+            return Err(PoseError::NonFinite {
+                row,
+                col: 3,
+                value: r[3],
+            });
+        }
+    }
+    let rotation = rotation_from_matrix(&Matrix3::from_fn(|r, c| applied[r][c]))?;
+    let t = Vector3::new(applied[0][3], applied[1][3], applied[2][3]);
+    Ok(Pose::from_parts(t.into(), rotation))
+}
+
+/// A `cam_from_world` pose of a dataset whose `applied_transform` is `applied`, expressed in
+/// the original (COLMAP) world: `cam_from_original = cam_from_world · world_from_original`.
+pub fn original_cam_from_world(
+    applied: &[[f64; 4]; 3],
+    cam_from_world: &Pose,
+) -> Result<Pose, PoseError> {
+    Ok(cam_from_world * applied_transform_pose(applied)?)
+}
+
+/// The inverse of [`original_cam_from_world`]: a pose in the original (COLMAP) world
+/// expressed in the dataset's world, `cam_from_world = cam_from_original · world_from_original⁻¹`.
+pub fn cam_from_world_from_original(
+    applied: &[[f64; 4]; 3],
+    cam_from_original: &Pose,
+) -> Result<Pose, PoseError> {
+    Ok(cam_from_original * applied_transform_pose(applied)?.inverse())
+}
+
 /// Writes `dataset` as nerfstudio `transforms.json`, atomically.
 ///
 /// `path` is the file to write when it ends in `.json`, else a directory (created if needed)
@@ -687,9 +779,23 @@ fn to_json(dataset: &Dataset, target: &Path, out_dir: &Path) -> Result<Value, Ne
     for (_, key, list) in lists {
         top.insert(key.into(), Value::from(list));
     }
-    if dataset.metadata != SceneMetadata::default() {
-        let meta = serde_json::to_value(&dataset.metadata)
-            .map_err(|e| unwritable(0, format!("metadata: {e}")))?;
+    if let Some(PointSource::Ply { path }) = &dataset.points {
+        // Relative to the written file when the cloud lies below it, else as given.
+        let rel = path.strip_prefix(out_dir).unwrap_or(path);
+        let rel = rel
+            .to_str()
+            .ok_or_else(|| unwritable(0, "ply_file_path is not valid UTF-8".into()))?;
+        top.insert("ply_file_path".into(), Value::from(rel));
+    }
+    let mut matloc = dataset.metadata.clone();
+    if let Some(a) = matloc.applied_transform.take() {
+        applied_transform_pose(&a).map_err(|e| unwritable(0, format!("applied_transform: {e}")))?;
+        let rows: Vec<Value> = a.iter().map(|r| Value::from(r.to_vec())).collect();
+        top.insert("applied_transform".into(), Value::from(rows));
+    }
+    if matloc != SceneMetadata::default() {
+        let meta =
+            serde_json::to_value(&matloc).map_err(|e| unwritable(0, format!("metadata: {e}")))?;
         top.insert("matloc".into(), meta);
     }
     Ok(Value::Object(top))

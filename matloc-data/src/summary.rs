@@ -11,6 +11,7 @@ use crate::colmap::{find_model_dir, read_colmap_dataset};
 use crate::dataset::{Dataset, SceneMetadata, Split};
 use crate::error::DataError;
 use crate::images::{depth_size, image_size};
+use crate::meganerf::{COORDINATES_FILE, is_mega_nerf_dir, read_mega_nerf};
 use crate::nerfstudio::{BLENDER_SPLIT_FILES, TRANSFORMS_JSON, read_nerfstudio};
 
 /// The on-disk formats [`read_dataset`] recognises.
@@ -21,6 +22,9 @@ pub enum DatasetFormat {
     Nerfstudio,
     /// A COLMAP sparse model.
     Colmap,
+    /// The Mega-NeRF / Mill-19 layout (`coordinates.pt`, `{train,val}/metadata`).
+    #[serde(rename = "mega-nerf")]
+    MegaNerf,
 }
 
 /// Decides which format `path` holds without parsing it.
@@ -35,6 +39,9 @@ pub fn detect_format(path: &Path) -> Result<DatasetFormat, DataError> {
         if name.ends_with(".json") {
             return Ok(DatasetFormat::Nerfstudio);
         }
+        if name == COORDINATES_FILE && path.parent().is_some_and(is_mega_nerf_dir) {
+            return Ok(DatasetFormat::MegaNerf);
+        }
         if find_model_dir(path).is_some() {
             return Ok(DatasetFormat::Colmap);
         }
@@ -46,6 +53,9 @@ pub fn detect_format(path: &Path) -> Result<DatasetFormat, DataError> {
         if nerfstudio {
             return Ok(DatasetFormat::Nerfstudio);
         }
+        if is_mega_nerf_dir(path) {
+            return Ok(DatasetFormat::MegaNerf);
+        }
         if find_model_dir(path).is_some() {
             return Ok(DatasetFormat::Colmap);
         }
@@ -56,12 +66,13 @@ pub fn detect_format(path: &Path) -> Result<DatasetFormat, DataError> {
 }
 
 /// Reads a dataset in whichever supported format `path` holds: a nerfstudio directory or
-/// transforms file, or a COLMAP model directory / dataset root (images in the `images/`
-/// folder beside `sparse/`).
+/// transforms file, a Mega-NeRF dataset directory, or a COLMAP model directory / dataset root
+/// (images in the `images/` folder beside `sparse/`).
 pub fn read_dataset(path: &Path) -> Result<Dataset, DataError> {
     match detect_format(path)? {
         DatasetFormat::Nerfstudio => Ok(read_nerfstudio(path)?),
         DatasetFormat::Colmap => Ok(read_colmap_dataset(path)?),
+        DatasetFormat::MegaNerf => Ok(read_mega_nerf(path)?),
     }
 }
 

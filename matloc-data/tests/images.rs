@@ -35,6 +35,7 @@ fn one_frame(root: PathBuf, camera: Camera, depth: Option<&str>) -> (Dataset, Fr
     let ds = Dataset {
         root,
         frames: vec![frame.clone()],
+        points: None,
         metadata: Default::default(),
     };
     (ds, frame)
@@ -270,4 +271,55 @@ fn write_into_missing_directory_fails_cleanly() {
         }
     ));
     assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 0);
+}
+
+#[test]
+fn working_dataset_fits_file_sizes_then_downscales_every_frame_alike() {
+    let dir = tempfile::tempdir().unwrap();
+    // A pre-downscaled image (64x48) with intrinsics for the full 128x96 sensor.
+    write_png_rgb(&gradient(64, 48), &dir.path().join("img.png")).unwrap();
+    let full = Camera::pinhole(128, 96, 100.0, 100.0, 64.0, 48.0).unwrap();
+    let (ds, _) = one_frame(dir.path().to_path_buf(), full, None);
+
+    let native = matloc_data::images::working_dataset(&ds, None).unwrap();
+    let c = native.frames[0].camera;
+    assert_eq!((c.width, c.height, c.fx, c.cx), (64, 48, 50.0, 32.0));
+
+    // Longer side at most 32: factor 2 of the file's size.
+    let small = matloc_data::images::working_dataset(&ds, Some(32)).unwrap();
+    let c = small.frames[0].camera;
+    assert_eq!((c.width, c.height, c.fx, c.cx), (32, 24, 25.0, 16.0));
+    let (img, cam) = load_frame_image(&small, &small.frames[0], 1).unwrap();
+    assert_eq!((img.width(), img.height()), (32, 24));
+    assert_eq!(cam, c);
+    // The 8-bit file box-downscaled.
+    let file = load_rgb(&dir.path().join("img.png")).unwrap();
+    assert!(
+        img == downscale_box(&file, 2),
+        "not the box-downscaled file"
+    );
+    // A further downscale on top of the working size.
+    let (img, cam) = load_frame_image(&small, &small.frames[0], 2).unwrap();
+    assert_eq!((img.width(), img.height(), cam.width), (16, 12, 16));
+}
+
+#[test]
+fn working_dataset_names_an_image_whose_aspect_disagrees_with_its_intrinsics() {
+    let dir = tempfile::tempdir().unwrap();
+    write_png_rgb(&gradient(64, 64), &dir.path().join("img.png")).unwrap();
+    let cam = Camera::pinhole(128, 96, 100.0, 100.0, 64.0, 48.0).unwrap();
+    let (ds, _) = one_frame(dir.path().to_path_buf(), cam, None);
+    let e = matloc_data::images::working_dataset(&ds, Some(32)).unwrap_err();
+    assert!(matches!(e, ImageLoadError::SizeMismatch { .. }));
+    let msg = e.to_string();
+    assert!(
+        msg.contains("img.png") && msg.contains("64x64") && msg.contains("128x96"),
+        "{msg}"
+    );
+    // A missing image is named too.
+    std::fs::remove_file(dir.path().join("img.png")).unwrap();
+    let e = matloc_data::images::working_dataset(&ds, None)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("img.png"), "{e}");
 }

@@ -59,6 +59,13 @@ fn global_intrinsics_fixture() {
             generator: Some("hand-written fixture".into()),
             preset: Some("tiny".into()),
             seed: Some(7),
+            // The fixture's identity `applied_transform`.
+            applied_transform: Some([
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 0.0]
+            ]),
+            ..SceneMetadata::default()
         }
     );
     // The file path itself works too.
@@ -178,6 +185,7 @@ fn sample_dataset(root: &Path, shared_camera: bool) -> Dataset {
     Dataset {
         root: root.to_path_buf(),
         frames,
+        points: None,
         metadata: SceneMetadata {
             bounds_min: Some([-1.5, -2.5, 0.0]),
             bounds_max: Some([300.0, 200.0, 45.5]),
@@ -185,6 +193,7 @@ fn sample_dataset(root: &Path, shared_camera: bool) -> Dataset {
             generator: Some("test".into()),
             preset: Some("tiny".into()),
             seed: Some(u64::MAX - 1),
+            ..SceneMetadata::default()
         },
     }
 }
@@ -503,7 +512,7 @@ mod random_round_trip {
         #[test]
         fn write_then_read_is_identity(frames in prop::collection::vec(frame_strategy(), 1..6)) {
             let dir = tempfile::tempdir().unwrap();
-            let ds = Dataset { root: dir.path().to_path_buf(), frames, metadata: SceneMetadata::default() };
+            let ds = Dataset { root: dir.path().to_path_buf(), frames, metadata: SceneMetadata::default(), points: None };
             write_nerfstudio(&ds, dir.path()).unwrap();
             let back = read_nerfstudio(dir.path()).unwrap();
             prop_assert_eq!(back.frames.len(), ds.frames.len());

@@ -40,6 +40,7 @@ fn grid(root: &Path) -> Dataset {
     Dataset {
         root: root.to_path_buf(),
         frames,
+        points: None,
         metadata: SceneMetadata {
             bounds_min: Some([-50.0, -50.0, 0.0]),
             bounds_max: Some([80.0, 70.0, 25.0]),
@@ -47,6 +48,7 @@ fn grid(root: &Path) -> Dataset {
             generator: Some("test".into()),
             preset: None,
             seed: Some(3),
+            ..SceneMetadata::default()
         },
     }
 }
@@ -99,6 +101,7 @@ fn empty_dataset_summary_and_validation() {
     let ds = Dataset {
         root: PathBuf::from("x"),
         frames: vec![],
+        points: None,
         metadata: SceneMetadata::default(),
     };
     let s = summarize(&ds);

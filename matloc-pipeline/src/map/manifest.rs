@@ -18,6 +18,7 @@ use std::io::{self, Read};
 use std::path::{Component, Path, PathBuf};
 
 use matloc_core::fsutil::write_atomic;
+use matloc_data::split::SplitSpec;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -100,6 +101,20 @@ pub enum MapError {
         /// The requested name.
         name: String,
     },
+    /// Building with another split rule than the map records (or with one, when the map's
+    /// completed stages were built without).
+    #[error(
+        "{path}: the map was built with split {recorded}, not {requested}; use a new output \
+         directory or the same split"
+    )]
+    SplitMismatch {
+        /// The manifest file.
+        path: PathBuf,
+        /// The recorded rule (JSON), or `none`.
+        recorded: String,
+        /// The requested rule (JSON), or `none`.
+        requested: String,
+    },
     /// Resuming a build whose recorded config differs from the requested one.
     #[error(
         "{path}: the map was started with another config; use a new output directory or the same config"
@@ -158,6 +173,10 @@ pub struct Manifest {
     /// Free-form scene description: dataset path, bounds, frame conventions.
     #[serde(default)]
     pub scene: serde_json::Value,
+    /// The test split rule the build applied to its dataset, if it applied one; evaluation
+    /// applies the same rule ([`MapDir::record_split`]). Absent in maps built without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub split: Option<SplitSpec>,
     /// Sub-NeRF blocks.
     #[serde(default)]
     pub blocks: Vec<BlockEntry>,
@@ -177,6 +196,7 @@ impl Manifest {
             created_by: concat!("matloc-pipeline ", env!("CARGO_PKG_VERSION")).to_string(),
             config,
             scene: serde_json::Value::Null,
+            split: None,
             blocks: Vec::new(),
             stages: Vec::new(),
             files: BTreeMap::new(),
@@ -454,6 +474,30 @@ impl MapDir {
         self.save()
     }
 
+    /// Records the test split rule a build applies and saves the manifest. The map must record
+    /// the same rule already, or none while no stage has completed (its stages would have been
+    /// built on another split).
+    pub fn record_split(&mut self, split: Option<&SplitSpec>) -> Result<(), MapError> {
+        let recorded = self.manifest.split.as_ref();
+        if recorded == split {
+            return Ok(());
+        }
+        if recorded.is_some() || !self.manifest.stages.is_empty() {
+            let show = |s: Option<&SplitSpec>| {
+                s.map_or("none".to_string(), |s| {
+                    serde_json::to_string(s).unwrap_or_default()
+                })
+            };
+            return Err(MapError::SplitMismatch {
+                path: self.root.join(MANIFEST_FILE),
+                recorded: show(recorded),
+                requested: show(split),
+            });
+        }
+        self.manifest.split = split.cloned();
+        self.save()
+    }
+
     /// Writes the manifest atomically.
     pub fn save(&self) -> Result<(), MapError> {
         let path = self.root.join(MANIFEST_FILE);
@@ -481,6 +525,42 @@ mod tests {
             sha256_hex(b"abc"),
             "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
         );
+    }
+
+    #[test]
+    fn split_is_recorded_once_and_old_manifests_load() {
+        use matloc_data::split::SplitRule;
+        let dir = tempfile::tempdir().unwrap();
+        let spec = SplitSpec {
+            rule: SplitRule::Every(8),
+            resplit: false,
+        };
+        let mut map = MapDir::create_or_resume(dir.path(), serde_json::json!({})).unwrap();
+        map.record_split(Some(&spec)).unwrap();
+        let mut map = MapDir::open(dir.path()).unwrap();
+        assert_eq!(map.manifest().split, Some(spec.clone()));
+        map.record_split(Some(&spec)).unwrap();
+        let other = SplitSpec {
+            rule: SplitRule::Every(4),
+            resplit: false,
+        };
+        let e = map.record_split(Some(&other)).unwrap_err();
+        assert!(matches!(e, MapError::SplitMismatch { .. }), "{e}");
+        assert!(matches!(
+            map.record_split(None),
+            Err(MapError::SplitMismatch { .. })
+        ));
+
+        // A map with stages built without a rule cannot take one.
+        let dir = tempfile::tempdir().unwrap();
+        let mut map = MapDir::create_or_resume(dir.path(), serde_json::json!({})).unwrap();
+        map.complete_stage("partition", 1.0).unwrap();
+        assert!(map.record_split(Some(&spec)).is_err());
+        map.record_split(None).unwrap();
+        // Manifests without the field load, with no split; the field is not written then.
+        let text = fs::read_to_string(dir.path().join(MANIFEST_FILE)).unwrap();
+        assert!(!text.contains("\"split\""), "{text}");
+        assert_eq!(MapDir::open(dir.path()).unwrap().manifest().split, None);
     }
 
     #[test]
