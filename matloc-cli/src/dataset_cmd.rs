@@ -3,7 +3,9 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
+use matloc_data::Split;
 use matloc_data::summary::{self, detect_format};
+use matloc_surface::SurfaceChoice;
 
 /// Reads the dataset, checks every referenced file and prints the summary. Fails (non-zero
 /// exit) when the dataset cannot be read or any file problem is found.
@@ -13,9 +15,13 @@ pub fn info(path: &Path, json: bool) -> Result<()> {
         .with_context(|| format!("reading dataset at {}", path.display()))?;
     let summary = summary::summarize(&dataset);
     let problems = summary::validate(&dataset);
+    // What a map build (default surface settings) would partition on.
+    let train = dataset.split_indices(Split::Train);
+    let surface = matloc_surface::plan(&dataset, &train, SurfaceChoice::Auto)?;
     if json {
         let value = serde_json::json!({
             "format": format!("{format:?}"),
+            "surface": surface,
             "summary": summary,
             "problems": problems.iter().map(|p| p.to_string()).collect::<Vec<_>>(),
         });
@@ -23,6 +29,13 @@ pub fn info(path: &Path, json: bool) -> Result<()> {
     } else {
         outln!("format: {format:?}")?;
         out!("{summary}")?;
+        outln!(
+            "surface for map build: {} — {} ({} of {} training frames have depth files)",
+            surface.kind,
+            surface.detail,
+            surface.frames_with_depth,
+            surface.frames
+        )?;
         if problems.is_empty() {
             outln!("files: all referenced images and depth maps present and consistent")?;
         } else {

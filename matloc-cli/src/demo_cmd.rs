@@ -11,6 +11,7 @@ use matloc_pipeline::build::MapConfig;
 use matloc_pipeline::methods::Method;
 
 use crate::eval_cmd::{self, EvalArgs};
+use crate::split_args::SplitArgs;
 use crate::{map_cmd, synth_cmd};
 
 /// Arguments of `matloc demo`.
@@ -55,14 +56,14 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
             args.preset,
             data.display()
         )?;
-        synth_cmd::run(&args.preset, &data, None, quiet)?;
+        synth_cmd::run(&args.preset, &data, None, None, &Default::default(), quiet)?;
     }
     let config = match &args.config {
         Some(p) => map_cmd::read_config(p)?,
         None => demo_config(),
     };
     outln!("[2/3] building the map in {}", map.display())?;
-    map_cmd::build(&data, &map, &config, quiet).context("map build")?;
+    map_cmd::build(&data, &map, &config, &SplitArgs::default(), quiet).context("map build")?;
     outln!("[3/3] localizing the test queries with every method")?;
     let path = eval_cmd::run(
         &EvalArgs {
@@ -72,6 +73,7 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
             queries: 0,
             inerf_queries: args.inerf_queries,
             out: report,
+            split: SplitArgs::default(),
         },
         quiet,
     )?;

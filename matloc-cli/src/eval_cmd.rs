@@ -15,6 +15,7 @@ use matloc_pipeline::{MethodSummary, QueryOutcome, accuracy_table, summarize, ti
 use crate::localize_cmd::{Query, dataset_queries};
 use crate::plot;
 use crate::progress;
+use crate::split_args::{self, SplitArgs};
 
 /// Arguments of `matloc eval`.
 #[derive(Args, Clone)]
@@ -42,6 +43,9 @@ pub struct EvalArgs {
     /// Report directory (created).
     #[arg(long)]
     pub out: PathBuf,
+    /// Test split for data without one; by default the split the map was built with.
+    #[command(flatten)]
+    pub split: SplitArgs,
 }
 
 /// One method's results.
@@ -59,8 +63,11 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
     }
     let map = LoadedMap::open(&args.map)
         .with_context(|| format!("opening map {}", args.map.display()))?;
-    let dataset = matloc_data::read_dataset(&args.data)
+    let mut dataset = matloc_data::read_dataset(&args.data)
         .with_context(|| format!("reading dataset {}", args.data.display()))?;
+    let split = args.split.for_map(map.dir.manifest().split.as_ref())?;
+    split_args::apply(split.as_ref(), &mut dataset)
+        .with_context(|| format!("splitting dataset {}", args.data.display()))?;
     let queries = dataset_queries(&dataset, &map, args.queries)?;
     if queries.is_empty() {
         bail!("{} has no test views to localize", args.data.display());

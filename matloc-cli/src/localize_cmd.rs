@@ -11,6 +11,8 @@ use matloc_pipeline::LoadedMap;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 use serde::Deserialize;
 
+use crate::split_args::{self, SplitArgs};
+
 /// Arguments of `matloc localize`.
 #[derive(Args)]
 pub struct LocalizeArgs {
@@ -31,6 +33,9 @@ pub struct LocalizeArgs {
     /// Method.
     #[arg(long, default_value = "matloc")]
     method: Method,
+    /// Test split of the --data dataset when it has none; by default the map's.
+    #[command(flatten)]
+    split: SplitArgs,
 }
 
 /// One query ready to localize.
@@ -151,11 +156,20 @@ fn frame_of<'a>(dataset: &'a Dataset, path: &Path) -> Option<&'a matloc_data::da
 /// Loads the queries named on the command line.
 fn load_queries(args: &LocalizeArgs, map: &LoadedMap) -> Result<Vec<Query>> {
     let dataset = match &args.data {
-        Some(d) => Some(
-            matloc_data::read_dataset(d)
-                .with_context(|| format!("reading dataset {}", d.display()))?,
-        ),
-        None => None,
+        Some(d) => {
+            let mut ds = matloc_data::read_dataset(d)
+                .with_context(|| format!("reading dataset {}", d.display()))?;
+            let split = args.split.for_map(map.dir.manifest().split.as_ref())?;
+            split_args::apply(split.as_ref(), &mut ds)
+                .with_context(|| format!("splitting dataset {}", d.display()))?;
+            Some(ds)
+        }
+        None => {
+            if args.split.spec()?.is_some() {
+                bail!("--test-every / --test-list need --data");
+            }
+            None
+        }
     };
     let fixed = match &args.intrinsics {
         Some(p) => Some(read_intrinsics(p)?),
@@ -171,6 +185,9 @@ fn load_queries(args: &LocalizeArgs, map: &LoadedMap) -> Result<Vec<Query>> {
             let f = frame_of(ds, path).with_context(|| {
                 format!("{name} is not an image of dataset {}", ds.root.display())
             })?;
+            if f.split == Split::Train {
+                tracing::warn!(query = %name, "the query is a training frame of the dataset");
+            }
             (f.camera, Some(f.cam_from_world))
         } else if let Some(c) = fixed {
             (c, None)

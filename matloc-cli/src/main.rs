@@ -7,6 +7,7 @@ mod output;
 mod dataset_cmd;
 mod demo_cmd;
 mod eval_cmd;
+mod import_cmd;
 mod localize_cmd;
 mod logging;
 mod map_cmd;
@@ -16,6 +17,7 @@ mod partition_cmd;
 mod place_cmd;
 mod plot;
 mod progress;
+mod split_args;
 mod synth_cmd;
 
 use std::path::PathBuf;
@@ -58,6 +60,17 @@ enum Command {
         /// World and capture seed (default: the preset's).
         #[arg(long)]
         seed: Option<u64>,
+        /// Image width in pixels (height by the preset's aspect, same field of view): renders
+        /// the preset's survey at another resolution.
+        #[arg(long)]
+        width: Option<u32>,
+        /// Write no depth maps (as real data comes).
+        #[arg(long)]
+        no_depth: bool,
+        /// Also write the sparse point cloud real data would have: a COLMAP model with
+        /// points3D and tracks in OUT/sparse/0 and nerfstudio's OUT/sparse_pc.ply.
+        #[arg(long)]
+        points: bool,
     },
     /// Inspect datasets.
     Dataset {
@@ -98,6 +111,11 @@ enum DatasetCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Convert another dataset layout into a nerfstudio transforms.json.
+    Import {
+        #[command(subcommand)]
+        format: import_cmd::ImportCommand,
+    },
 }
 
 fn main() -> ExitCode {
@@ -107,10 +125,26 @@ fn main() -> ExitCode {
         return ExitCode::FAILURE;
     }
     let result = match cli.command {
-        Command::Synth { preset, out, seed } => synth_cmd::run(&preset, &out, seed, cli.quiet),
+        Command::Synth {
+            preset,
+            out,
+            seed,
+            width,
+            no_depth,
+            points,
+        } => {
+            let output = matloc_synth::SynthOutput {
+                depth: !no_depth,
+                points,
+            };
+            synth_cmd::run(&preset, &out, seed, width, &output, cli.quiet)
+        }
         Command::Dataset {
             command: DatasetCommand::Info { path, json },
         } => dataset_cmd::info(&path, json),
+        Command::Dataset {
+            command: DatasetCommand::Import { format },
+        } => import_cmd::run(&format),
         Command::Nerf(args) => nerf_cmd::run(&args, cli.quiet),
         Command::Partition(args) => partition_cmd::run(&args, cli.quiet),
         Command::Place { command } => place_cmd::run(&command, cli.quiet),

@@ -13,6 +13,7 @@ use matloc_pipeline::map::layout::{
 };
 
 use crate::progress;
+use crate::split_args::{self, SplitArgs};
 
 /// `matloc map ...`
 #[derive(Subcommand)]
@@ -39,12 +40,49 @@ pub struct BuildArgs {
     /// Output map directory.
     #[arg(long)]
     pub out: PathBuf,
+    /// Test split for data without one (recorded in the map).
+    #[command(flatten)]
+    pub split: SplitArgs,
     /// Build configuration (JSON; missing fields take their defaults).
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Override the sub-NeRF training steps per block.
     #[arg(long)]
     pub nerf_steps: Option<u64>,
+    /// Scene surface for views without depth files: auto (depth files, else the dataset's
+    /// point cloud, else points triangulated from the posed images), depth, points,
+    /// triangulate. Overrides the config's `surface.source`.
+    #[arg(long, value_enum)]
+    pub surface: Option<SurfaceArg>,
+    /// Working resolution: images (and queries) are box-downscaled by the smallest integer
+    /// factor that brings the longer side to at most this many pixels. Overrides the config's
+    /// `images.max_side`.
+    #[arg(long)]
+    pub max_side: Option<u32>,
+}
+
+/// `--surface` on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SurfaceArg {
+    /// Depth files, else the dataset's point cloud, else triangulated points.
+    Auto,
+    /// Depth files only.
+    Depth,
+    /// The dataset's point cloud (COLMAP points3D, nerfstudio ply_file_path / sparse_pc.ply).
+    Points,
+    /// Points triangulated from the posed images.
+    Triangulate,
+}
+
+impl From<SurfaceArg> for matloc_surface::SurfaceChoice {
+    fn from(a: SurfaceArg) -> Self {
+        match a {
+            SurfaceArg::Auto => Self::Auto,
+            SurfaceArg::Depth => Self::Depth,
+            SurfaceArg::Points => Self::Points,
+            SurfaceArg::Triangulate => Self::Triangulate,
+        }
+    }
 }
 
 /// Runs `matloc map ...`.
@@ -58,7 +96,14 @@ pub fn run(cmd: &MapCommand, quiet: bool) -> Result<()> {
             if let Some(s) = a.nerf_steps {
                 config.nerf.steps = s;
             }
-            build(&a.data, &a.out, &config, quiet)
+            if let Some(s) = a.surface {
+                config.surface.source = s.into();
+            }
+            if let Some(m) = a.max_side {
+                anyhow::ensure!(m >= 16, "--max-side must be at least 16, got {m}");
+                config.images.max_side = Some(m);
+            }
+            build(&a.data, &a.out, &config, &a.split, quiet)
         }
         MapCommand::Info { map, json } => info(map, *json),
     }
@@ -71,10 +116,30 @@ pub fn read_config(path: &Path) -> Result<MapConfig> {
     serde_json::from_str(&text).with_context(|| format!("parsing map config {}", path.display()))
 }
 
-/// Builds (or resumes) a map with progress bars per stage.
-pub fn build(data: &Path, out: &Path, config: &MapConfig, quiet: bool) -> Result<()> {
-    let dataset = matloc_data::read_dataset(data)
+/// Builds (or resumes) a map with progress bars per stage. A split rule from the flags (or,
+/// without flags, the one the map records) is applied to the dataset and recorded in the
+/// manifest before any stage runs.
+pub fn build(
+    data: &Path,
+    out: &Path,
+    config: &MapConfig,
+    split: &SplitArgs,
+    quiet: bool,
+) -> Result<()> {
+    let mut dataset = matloc_data::read_dataset(data)
         .with_context(|| format!("reading dataset {}", data.display()))?;
+    // The same manifest config `build_map` opens the map with.
+    let config_json = serde_json::to_value(config).context("map config")?;
+    let mut map_dir = MapDir::create_or_resume(out, config_json)
+        .with_context(|| format!("opening map {}", out.display()))?;
+    let spec = match split.spec()? {
+        Some(s) => Some(s),
+        None => map_dir.manifest().split.clone(),
+    };
+    split_args::apply(spec.as_ref(), &mut dataset)
+        .with_context(|| format!("splitting dataset {}", data.display()))?;
+    map_dir.record_split(spec.as_ref())?;
+    drop(map_dir);
     let t0 = Instant::now();
     // Bars of the running stages (several while sub-NeRF blocks train side by side), by name;
     // `StageProgress` goes to the one started last.

@@ -10,8 +10,11 @@ use matloc_data::Split;
 use matloc_partition::{
     GridConfig, GridPartitioner, Method, Partition, Partitioner, PoseAwareConfig,
     PoseAwarePartitioner, PoseSamples, SampleConfig, assign_pose, coverage, mean_num_nerf,
-    samples_from_dataset, write_partition,
+    write_partition,
 };
+
+use matloc_pipeline::build::partition::samples_on_surfaces;
+use matloc_surface::{FrameSurfaces, SurfaceConfig};
 
 use crate::plot;
 use crate::progress;
@@ -109,8 +112,16 @@ pub fn run(args: &PartitionArgs, quiet: bool) -> Result<()> {
     };
     let t0 = Instant::now();
     let bar = progress::bar((train_idx.len() + test_idx.len()) as u64, "sampling", quiet);
-    let train = samples_from_dataset(&dataset, &train_idx, &sample_cfg, &|| bar.inc(1))?;
-    let test = samples_from_dataset(&dataset, &test_idx, &sample_cfg, &|| bar.inc(1))?;
+    // The surface of training views as a map build finds it; test views see the same points.
+    let surfaces = FrameSurfaces::prepare(
+        &dataset,
+        &train_idx,
+        &SurfaceConfig::default(),
+        &|_, _, _| {},
+    )?;
+    tracing::info!(source = %surfaces.plan().kind, "partition surface");
+    let train = samples_on_surfaces(&dataset, &train_idx, &surfaces, &sample_cfg, &|| bar.inc(1))?;
+    let test = samples_on_surfaces(&dataset, &test_idx, &surfaces, &sample_cfg, &|| bar.inc(1))?;
     bar.finish_and_clear();
     let sample_secs = t0.elapsed().as_secs_f64();
     let n_points: usize = train.iter().map(|p| p.points.len()).sum();

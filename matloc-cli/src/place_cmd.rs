@@ -113,6 +113,14 @@ fn load_frames(
     label: &str,
     quiet: bool,
 ) -> Result<PlaceQueries> {
+    // Depth files, or the surface a map build would use (points, triangulation).
+    let train = dataset.split_indices(matloc_data::Split::Train);
+    let surfaces = matloc_surface::FrameSurfaces::prepare(
+        dataset,
+        &train,
+        &matloc_surface::SurfaceConfig::default(),
+        &|_, _, _| {},
+    )?;
     let bar = progress::bar(indices.len() as u64, label, quiet);
     let loaded: Vec<(Image<f32>, Image<f32>, Camera, Pose)> = indices
         .par_iter()
@@ -120,9 +128,9 @@ fn load_frames(
             let f = &dataset.frames[i];
             let (img, cam) = matloc_data::images::load_frame_image(dataset, f, 1)
                 .with_context(|| format!("image of frame {i}"))?;
-            let depth = matloc_data::images::load_frame_depth(dataset, f, 1)
-                .with_context(|| format!("depth of frame {i}"))?
-                .with_context(|| format!("frame {i} has no depth map"))?;
+            let depth = surfaces
+                .depth(dataset, i)
+                .with_context(|| format!("surface of frame {i}"))?;
             bar.inc(1);
             Ok((img, depth, cam, f.cam_from_world))
         })

@@ -5,6 +5,7 @@ use matloc_encoder::{EncoderTrainConfig, HeadPhaseConfig};
 use matloc_partition::{PoseAwareConfig, SampleConfig};
 use matloc_place::{GroupConfig, PlaceModel, TrainConfig};
 use matloc_select::GreedySearch;
+use matloc_surface::SurfaceConfig;
 use serde::{Deserialize, Serialize};
 
 use crate::gt::{PerturbKind, Perturbation};
@@ -15,6 +16,10 @@ use crate::localizer::options::LocalizeOptions;
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct MapConfig {
+    /// Working resolution of every stage.
+    pub images: ImageConfig,
+    /// Where the scene surface comes from for training views without a depth file.
+    pub surface: SurfaceConfig,
     /// Ray samples of each training pose for the partition.
     pub samples: SampleConfig,
     /// Pose-aware partition (target ~150 poses per block, as the paper).
@@ -34,6 +39,18 @@ pub struct MapConfig {
     /// Localizer settings stored with the map (the confidence model is replaced by the
     /// calibrated one when the map is loaded).
     pub localize: LocalizeOptions,
+}
+
+/// The resolution a map is built at.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ImageConfig {
+    /// Every training image is box-downscaled by the smallest integer factor that brings its
+    /// longer side to at most this (`None`: the images' own size), with intrinsics scaled to
+    /// match; every stage (NeRF, pairs, encoder, place, calibration) works at that size, the
+    /// NeRF's own `nerf.downscale` on top of it. Queries are reduced the same way
+    /// ([`crate::LocalizeOptions::max_side`]).
+    pub max_side: Option<u32>,
 }
 
 /// Sub-NeRF training settings of a map build.

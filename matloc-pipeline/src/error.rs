@@ -43,6 +43,9 @@ pub enum PipelineError {
     /// The place predictor failed.
     #[error("place prediction: {0}")]
     Place(#[from] matloc_place::PlaceError),
+    /// Finding the scene surface of the training views failed.
+    #[error("surface: {0}")]
+    Surface(#[from] matloc_surface::SurfaceError),
     /// The partition failed.
     #[error("partition: {0}")]
     Partition(#[from] matloc_partition::PartitionError),

@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 use crate::baselines::{InerfOptions, KeypointBaselineOptions, inerf, rgb_keypoints};
 use crate::error::PipelineError;
 use crate::localizer::HypothesisReport;
+use crate::localizer::options::query_at_working_size;
 use crate::map::load::LoadedMap;
 
 /// A localization method.
@@ -140,6 +141,8 @@ pub fn localize_with(
         });
     }
     let start = Instant::now();
+    let (image, camera) = query_at_working_size(image, camera, map.options().max_side);
+    let (image, camera) = (image.as_ref(), &camera);
     let t = Instant::now();
     let hyps = map.place.predict(image, camera, 1)?;
     let place_s = t.elapsed().as_secs_f64();

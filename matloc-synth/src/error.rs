@@ -47,4 +47,10 @@ pub enum SynthError {
     /// Writing `transforms.json` failed.
     #[error(transparent)]
     Dataset(Box<matloc_data::nerfstudio::NerfstudioError>),
+    /// Writing `sparse_pc.ply` failed.
+    #[error(transparent)]
+    Ply(Box<matloc_data::ply::PlyError>),
+    /// Writing the COLMAP model failed.
+    #[error(transparent)]
+    Colmap(Box<matloc_data::colmap::ColmapError>),
 }

@@ -37,6 +37,7 @@ fn metadata(config: &SynthConfig, world: &World) -> SceneMetadata {
         generator: Some("matloc-synth".into()),
         preset: Some(config.preset.clone()),
         seed: Some(config.seed),
+        ..SceneMetadata::default()
     }
 }
 
@@ -47,6 +48,29 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SynthError + '_ {
     }
 }
 
+/// What [`synthesize_with`] writes besides the images.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SynthOutput {
+    /// Depth maps (`depth/`, `depth_file_path`), as the synthetic world always could.
+    pub depth: bool,
+    /// The sparse point cloud real data would have: a COLMAP model with points3D and tracks
+    /// in `sparse/0` and nerfstudio's `sparse_pc.ply` (see [`crate::points`]).
+    pub points: bool,
+}
+
+impl Default for SynthOutput {
+    fn default() -> Self {
+        SynthOutput {
+            depth: true,
+            points: false,
+        }
+    }
+}
+
+/// Pixel stride of the exported survey points (about one point per 8×8 pixels of each
+/// training view, before keeping those seen twice).
+const POINT_STRIDE_PX: usize = 8;
+
 /// Renders every planned frame (rayon) and writes a nerfstudio dataset into `out_dir`:
 /// `images/frame_NNNNN.png` (8-bit RGB), `depth/frame_NNNNN.npy` (float32 z-depth in metres,
 /// 0 = sky) and `transforms.json` with the scene metadata. Every file is written atomically;
@@ -56,8 +80,28 @@ pub fn synthesize(
     out_dir: &Path,
     progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<Dataset, SynthError> {
-    let (world, plan) = generate(config)?;
-    for sub in ["images", "depth"] {
+    synthesize_with(config, out_dir, &SynthOutput::default(), progress)
+}
+
+/// [`synthesize`] with a choice of what to write besides the images.
+pub fn synthesize_with(
+    config: &SynthConfig,
+    out_dir: &Path,
+    output: &SynthOutput,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<Dataset, SynthError> {
+    let (world, mut plan) = generate(config)?;
+    if !output.depth {
+        for f in &mut plan.frames {
+            f.depth_path = None;
+        }
+    }
+    let subs: &[&str] = if output.depth {
+        &["images", "depth"]
+    } else {
+        &["images"]
+    };
+    for sub in subs {
         let d = out_dir.join(sub);
         std::fs::create_dir_all(&d).map_err(io_err(&d))?;
     }
@@ -76,11 +120,17 @@ pub fn synthesize(
             progress(Progress { done: d, total });
             Ok(())
         })?;
-    let dataset = Dataset {
+    let mut dataset = Dataset {
         root: out_dir.to_path_buf(),
         frames: plan.frames,
+        points: None,
         metadata: metadata(config, &world),
     };
+    if output.points {
+        let points = crate::points::survey_points(&world, &dataset, POINT_STRIDE_PX);
+        let ply = crate::points::write_survey_points(&dataset, &points, out_dir)?;
+        dataset.points = Some(matloc_data::PointSource::Ply { path: ply });
+    }
     write_transforms(&dataset, &out_dir.join("transforms.json"))?;
     Ok(dataset)
 }

@@ -1,18 +1,19 @@
 //! End to end on the `tiny` synthetic world, one map built once for all the tests here: the
 //! build is interrupted mid-stage and resumed; the map localizes the test views with the
 //! learned query encoder and with a perfect one (which checks everything but the CNN), refuses
-//! an unrelated image, and runs the paper's Table 3 and the selection on held-out renders.
+//! an unrelated image, and runs the paper's Table 3 and the selection on held-out renders; maps
+//! of the same world built without depth files localize nearly as well.
 //!
 //! NeRF and encoder training are not bit-reproducible across runs (parallel gradient
 //! accumulation), so the floors below hold across builds rather than pin one build's numbers.
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_core::{Image, Pose};
-use matloc_data::{Dataset, Split, read_dataset};
+use matloc_data::{Dataset, PointSource, Split, read_dataset};
 use matloc_pipeline::LoadedMap;
 use matloc_pipeline::build::select::{select_on_renders, selection_views};
 use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
@@ -22,7 +23,8 @@ use matloc_pipeline::eval::table3::{Table3Config, evaluate, markdown, paired_mar
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 use matloc_pipeline::{LocalizeOptions, Localizer, LocalizerBlock, PipelineError};
 use matloc_pnp::LoRansacPnp;
-use matloc_synth::{SynthConfig, synthesize};
+use matloc_surface::SurfaceKind;
+use matloc_synth::{SynthConfig, SynthOutput, synthesize, synthesize_with};
 
 fn tiny_config() -> MapConfig {
     let mut c = MapConfig::default();
@@ -320,4 +322,172 @@ fn selection_on_held_out_renders_picks_distinct_dims_and_types_its_errors() {
         selection_views(blk, &b.dataset, &map.partition, &map.config, 9, &rs_cfg),
         Err(PipelineError::Config(_))
     ));
+}
+
+/// A map's surface source and its perfect-encoder errors on the test views.
+struct Outcome {
+    surface: String,
+    /// Perfect-encoder translation errors (refusals as ∞), sorted.
+    perfect: Vec<f64>,
+}
+
+fn median(v: &[f64]) -> f64 {
+    0.5 * (v[v.len() / 2 - 1] + v[v.len() / 2])
+}
+
+/// Builds a map of `dataset` (unless `config` is `None`: the map exists) and localizes the
+/// test views with the perfect encoder.
+fn build_and_localize(dataset: &Dataset, map_dir: &Path, config: Option<&MapConfig>) -> Outcome {
+    let t = std::time::Instant::now();
+    if let Some(config) = config {
+        let _ = std::fs::remove_dir_all(map_dir);
+        build_map(dataset, map_dir, config, &mut |_| {}).unwrap();
+    }
+    let build_s = t.elapsed().as_secs_f64();
+    let surface: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(map_dir.join("surface.json")).unwrap()).unwrap();
+    let map = LoadedMap::open(map_dir).unwrap();
+    let solver = LoRansacPnp::default();
+    let mut perfect = Vec::new();
+    for f in dataset.split(Split::Test) {
+        let (image, camera) = matloc_data::images::load_frame_image(dataset, f, 1).unwrap();
+        let blk = &map.blocks.0[0];
+        let oracle = RenderedQueryEncoder {
+            renderer: blk.renderer.as_ref(),
+            camera,
+            cam_from_world: f.cam_from_world,
+            dims: (0..47).collect(),
+            stride: 4,
+        };
+        let localizer = Localizer {
+            place: map.place.as_ref(),
+            blocks: vec![LocalizerBlock {
+                renderer: blk.renderer.as_ref(),
+                encoder: &oracle,
+                matcher: blk.matcher.as_ref(),
+                dims: blk.dims.clone(),
+                match_dims: blk.match_dims.clone(),
+            }],
+            solver: &solver,
+            options: LocalizeOptions::default(),
+        };
+        perfect.push(
+            match localizer.localize(&image, &camera).unwrap().cam_from_world {
+                Some(p) => translation_error_m(&p, &f.cam_from_world),
+                None => f64::INFINITY,
+            },
+        );
+    }
+    perfect.sort_by(f64::total_cmp);
+    let o = Outcome {
+        surface: surface["plan"]["kind"].as_str().unwrap_or("?").to_string(),
+        perfect,
+    };
+    eprintln!(
+        "{}: surface {}, build {build_s:.0} s, perfect-encoder median {:.3} m (errors {:?})",
+        map_dir.display(),
+        o.surface,
+        median(&o.perfect),
+        o.perfect,
+    );
+    o
+}
+
+fn without_depth(mut d: Dataset) -> Dataset {
+    for f in &mut d.frames {
+        f.depth_path = None;
+    }
+    d
+}
+
+/// Maps built without depth files — from points triangulated from the posed images alone,
+/// from the world exported as a COLMAP model (points3D with tracks), from a nerfstudio folder
+/// with a `sparse_pc.ply` — against the depth-supplied build above.
+///
+/// The comparison localizes the test views with the block's NeRF features rendered at the
+/// true pose as the query's (the perfect encoder), so it measures what the surface source
+/// changes — the partition, the blocks' scene boxes, the NeRFs, the place predictor's view
+/// points — without the run-to-run noise of CNN training; the variants therefore train their
+/// encoders for a few steps only (the perfect-encoder path does not use them).
+#[test]
+fn maps_without_depth_localize_within_1_5x_of_the_depth_build() {
+    let b = built();
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("no_depth_tiny");
+    let _ = std::fs::remove_dir_all(&dir);
+    let data = b.map_dir.parent().unwrap().join("data");
+    // The same world's sparse points, written beside the reference dataset.
+    let output = SynthOutput {
+        depth: true,
+        points: true,
+    };
+    let copy = dir.join("data");
+    synthesize_with(
+        &SynthConfig::preset("tiny").unwrap(),
+        &copy,
+        &output,
+        &|_| {},
+    )
+    .unwrap();
+    let with_depth = read_dataset(&copy).unwrap();
+    assert!(matches!(with_depth.points, Some(PointSource::Ply { .. })));
+    assert_eq!(
+        with_depth.frames,
+        read_dataset(&data).unwrap().frames,
+        "not the same world"
+    );
+    let data = copy;
+
+    // nerfstudio folder with sparse_pc.ply, no depth.
+    let ply = without_depth(with_depth.clone());
+    // No depth and no points: triangulation.
+    let mut bare = without_depth(with_depth.clone());
+    bare.points = None;
+    // The COLMAP model (images named relative to images/), with the synthetic test split.
+    let mut colmap = read_dataset(&data.join("sparse/0")).unwrap();
+    assert!(matches!(colmap.points, Some(PointSource::Colmap { .. })));
+    for (c, n) in colmap.frames.iter_mut().zip(&with_depth.frames) {
+        assert!(n.image_path.ends_with(&c.image_path));
+        c.split = n.split;
+    }
+
+    let reference = build_and_localize(&b.dataset, &b.map_dir, None);
+    assert_eq!(reference.surface, "depth_maps");
+    let mut config = tiny_config();
+    config.encoder.train.steps = 5;
+    let runs = [
+        (
+            bare,
+            "map_triangulated",
+            SurfaceKind::Triangulated,
+            "triangulated",
+        ),
+        (
+            colmap,
+            "map_colmap",
+            SurfaceKind::ColmapPoints,
+            "colmap_points",
+        ),
+        (ply, "map_ply", SurfaceKind::PlyPoints, "ply_points"),
+    ];
+    let bound = 1.5 * median(&reference.perfect);
+    let mut failures = Vec::new();
+    for (dataset, name, kind, tag) in runs {
+        let surface = matloc_surface::plan(
+            &dataset,
+            &dataset.split_indices(Split::Train),
+            matloc_surface::SurfaceChoice::Auto,
+        )
+        .unwrap();
+        assert_eq!(surface.kind, kind);
+        let o = build_and_localize(&dataset, &dir.join(name), Some(&config));
+        assert_eq!(o.surface, tag);
+        let m = median(&o.perfect);
+        if m > bound {
+            failures.push(format!(
+                "{name}: median {m:.3} m > 1.5 × {:.3} m",
+                median(&reference.perfect)
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{failures:?}");
 }

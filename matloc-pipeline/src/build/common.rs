@@ -54,8 +54,8 @@ pub enum BuildEvent {
 /// 30 s, and at debug otherwise — a batch job's log shows where a long build is.
 #[derive(Default)]
 pub struct BuildLog {
-    /// Per running stage: name, total, last logged units and time.
-    running: Vec<(String, u64, u64, Instant)>,
+    /// Per running stage: name, total, last logged units and time, start time.
+    running: Vec<(String, u64, u64, Instant, Instant)>,
 }
 
 impl BuildLog {
@@ -65,7 +65,8 @@ impl BuildLog {
             BuildEvent::StageStarted { name, total } => {
                 tracing::info!(stage = %name, total, "stage started");
                 self.running.retain(|r| r.0 != *name);
-                self.running.push((name.clone(), *total, 0, Instant::now()));
+                let now = Instant::now();
+                self.running.push((name.clone(), *total, 0, now, now));
             }
             BuildEvent::StageProgress { done, message } => {
                 if let Some(i) = self.running.len().checked_sub(1) {
@@ -97,10 +98,21 @@ impl BuildLog {
     }
 
     fn progress(&mut self, i: usize, done: u64, message: &str) {
-        let (name, total, last, at) = &mut self.running[i];
+        let (name, total, last, at, started) = &mut self.running[i];
         let step = (*total / 10).max(1);
         if done >= *last + step || at.elapsed().as_secs_f64() >= 30.0 {
-            tracing::info!(stage = %name, done, total = *total, "{message}");
+            let elapsed = started.elapsed().as_secs_f64();
+            // Remaining time at the stage's mean rate so far.
+            let eta = (done > 0 && *total >= done)
+                .then(|| elapsed / done as f64 * (*total - done) as f64);
+            tracing::info!(
+                stage = %name,
+                done,
+                total = *total,
+                elapsed_s = elapsed.round(),
+                eta_s = eta.map(f64::round),
+                "{message}"
+            );
             *last = done;
             *at = Instant::now();
         } else {
@@ -143,6 +155,65 @@ pub(crate) fn stage(
         skipped: false,
     });
     Ok(())
+}
+
+/// A stage's training curve as JSON lines in `curves/<stage>.jsonl` inside the map (`/` in
+/// the stage name becomes `_`), one object per report: `step`, `t_s` (seconds since the log
+/// was opened) and the stage's values (loss, ...). Appended while the stage runs, so a long
+/// build can be followed and plotted; a resumed stage appends after the interrupted run. Not
+/// one of the map's checksummed files, and a log that cannot be written only warns.
+pub struct CurveLog {
+    file: Option<std::io::BufWriter<std::fs::File>>,
+    start: Instant,
+}
+
+impl CurveLog {
+    /// Opens (appends to) the curve of `stage` in `map`.
+    pub fn open(map: &MapDir, stage: &str) -> CurveLog {
+        let name = format!("curves/{}.jsonl", stage.replace('/', "_"));
+        let file = map.path_of(&name).ok().and_then(|path| {
+            let opened = path
+                .parent()
+                .map_or(Ok(()), std::fs::create_dir_all)
+                .and_then(|_| {
+                    std::fs::OpenOptions::new()
+                        .create(true)
+                        .append(true)
+                        .open(&path)
+                });
+            match opened {
+                Ok(f) => Some(std::io::BufWriter::new(f)),
+                Err(e) => {
+                    tracing::warn!(path = %path.display(), error = %e, "training curve not written");
+                    None
+                }
+            }
+        });
+        CurveLog {
+            file,
+            start: Instant::now(),
+        }
+    }
+
+    /// Appends one point of the curve (non-finite values are written as `null`).
+    pub fn record(&mut self, step: u64, values: &[(&str, f64)]) {
+        use std::io::Write;
+        let Some(f) = self.file.as_mut() else {
+            return;
+        };
+        let mut obj = serde_json::Map::new();
+        obj.insert("step".into(), step.into());
+        let t = (self.start.elapsed().as_secs_f64() * 1e3).round() / 1e3;
+        for (k, v) in std::iter::once(&("t_s", t)).chain(values) {
+            let v = serde_json::Number::from_f64(*v).map_or(serde_json::Value::Null, Into::into);
+            obj.insert((*k).into(), v);
+        }
+        let line = serde_json::Value::Object(obj).to_string();
+        if writeln!(f, "{line}").and_then(|_| f.flush()).is_err() {
+            tracing::warn!("training curve: write failed, no further points");
+            self.file = None;
+        }
+    }
 }
 
 /// Lists every file under `dir` (relative to the map root) in the manifest.
@@ -233,6 +304,34 @@ pub fn block_dataset(dataset: &Dataset, partition: &Partition, block: usize) -> 
     Dataset {
         root: dataset.root.clone(),
         frames,
+        points: None,
         metadata,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn curve_log_appends_json_lines_per_stage() {
+        let dir = tempfile::tempdir().unwrap();
+        let map = MapDir::create_or_resume(dir.path(), serde_json::json!({})).unwrap();
+        let mut c = CurveLog::open(&map, "nerf/3");
+        c.record(1, &[("loss", 0.5), ("psnr", f64::NAN)]);
+        c.record(2, &[("loss", 0.25), ("psnr", 20.0)]);
+        // A resumed stage appends.
+        CurveLog::open(&map, "nerf/3").record(3, &[("loss", 0.125)]);
+        let text = std::fs::read_to_string(dir.path().join("curves/nerf_3.jsonl")).unwrap();
+        let lines: Vec<serde_json::Value> = text
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        assert_eq!(lines.len(), 3);
+        assert_eq!(lines[0]["step"], 1);
+        assert!(lines[0]["psnr"].is_null());
+        assert_eq!(lines[1]["loss"], 0.25);
+        assert_eq!(lines[2]["step"], 3);
+        assert!(lines[2]["t_s"].as_f64().unwrap() >= 0.0);
     }
 }

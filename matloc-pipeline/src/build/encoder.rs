@@ -8,7 +8,7 @@ use matloc_encoder::{
 use matloc_match::{FeatureStats, ViewRenderer};
 use matloc_partition::Partition;
 
-use crate::build::common::{BuildEvent, load_image, spaced, stage, views_of_block};
+use crate::build::common::{BuildEvent, CurveLog, load_image, spaced, stage, views_of_block};
 use crate::config::MapConfig;
 use crate::error::PipelineError;
 use crate::gt::TrainingView;
@@ -92,8 +92,17 @@ pub fn run(
         steps,
         progress,
         &mut |map, progress| {
+            let mut curve = CurveLog::open(map, &format!("encoder/{b}"));
             let enc =
                 train_block_encoder(map, dataset, config, b, &enc_views, &all_dims, &mut |p| {
+                    curve.record(
+                        p.step as u64,
+                        &[
+                            ("loss", f64::from(p.loss)),
+                            ("mse", f64::from(p.mse)),
+                            ("nce", f64::from(p.nce)),
+                        ],
+                    );
                     progress(&BuildEvent::StageProgress {
                         done: p.step as u64,
                         message: format!("loss {:.3} (mse {:.3}, nce {:.3})", p.loss, p.mse, p.nce),

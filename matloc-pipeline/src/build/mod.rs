@@ -24,7 +24,7 @@ use crate::error::PipelineError;
 use crate::map::manifest::MapDir;
 
 pub use crate::config::MapConfig;
-pub use common::{BuildEvent, block_dataset};
+pub use common::{BuildEvent, CurveLog, block_dataset};
 pub use nerf::block_model_config;
 
 /// Builds (or resumes building) a map of `dataset` in `out` with the paper's pose-aware
@@ -55,6 +55,15 @@ pub fn build_map_with(
         progress(e);
     };
     tracing::info!(out = %out.display(), frames = dataset.frames.len(), "building map");
+    // Every stage at the working resolution; checked (image headers) before the map exists.
+    let working = matloc_data::images::working_dataset(dataset, config.images.max_side)?;
+    let dataset = &working;
+    // A surface source that cannot exist fails here, not after the map directory is made.
+    matloc_surface::plan(
+        dataset,
+        &dataset.split_indices(Split::Train),
+        config.surface.source,
+    )?;
     let config_json = serde_json::to_value(config).map_err(|source| PipelineError::ConfigJson {
         field: "map config",
         source,

@@ -9,7 +9,7 @@ use matloc_data::Dataset;
 use matloc_partition::Partition;
 use matloc_render::{FitOptions, config_for_dataset, train_on_dataset};
 
-use crate::build::common::{BuildEvent, block_dataset, register_dir};
+use crate::build::common::{BuildEvent, CurveLog, block_dataset, register_dir};
 use crate::config::{MapConfig, NerfStageConfig};
 use crate::error::PipelineError;
 use crate::map::layout::block_dir;
@@ -83,6 +83,9 @@ enum BlockMsg {
 struct FitProgressLine {
     done: u64,
     message: String,
+    loss: f64,
+    psnr: f64,
+    rays_per_s: f64,
 }
 
 /// Trains the NeRFs of `group` at the same time, `threads / group.len()` threads each, then
@@ -137,6 +140,9 @@ fn train_blocks(
                                     "loss {:.4} psnr {:.1} dB, {:.0} rays/s",
                                     p.stats.loss, p.stats.psnr, p.rays_per_s
                                 ),
+                                loss: f64::from(p.stats.loss),
+                                psnr: f64::from(p.stats.psnr),
+                                rays_per_s: p.rays_per_s,
                             }),
                         ));
                     })
@@ -160,8 +166,22 @@ fn train_blocks(
             });
         }
         drop(tx);
+        let mut curves: Vec<CurveLog> = group
+            .iter()
+            .map(|b| CurveLog::open(map, &format!("nerf/{b}")))
+            .collect();
         for (slot, msg) in rx {
             let name = format!("nerf/{}", group[slot]);
+            if let BlockMsg::Progress(p) = &msg {
+                curves[slot].record(
+                    p.done,
+                    &[
+                        ("loss", p.loss),
+                        ("psnr", p.psnr),
+                        ("rays_per_s", p.rays_per_s),
+                    ],
+                );
+            }
             match msg {
                 BlockMsg::Progress(p) if concurrent => progress(&BuildEvent::StageProgressOf {
                     name,

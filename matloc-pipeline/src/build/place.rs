@@ -10,7 +10,7 @@ use matloc_place::{ExtraViews, PlaceMethod, PlaceModel, PoseGroups, view_point_f
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::build::common::{BuildEvent, load_image, register_dir, stage};
+use crate::build::common::{BuildEvent, CurveLog, load_image, register_dir, stage};
 use crate::config::MapConfig;
 use crate::error::PipelineError;
 use crate::gt::{PerturbKind, Perturbation};
@@ -60,6 +60,7 @@ pub fn run(
             }
             let mut groups = PoseGroups::build(&poses, &view_points, &config.place.groups)?;
             groups.attach_blocks(|k| partition.block_of_member(k));
+            let mut curve = CurveLog::open(map, "place");
             let extra = rendered_place_views(
                 map, dataset, &train_idx, partition, &groups, config, progress,
             )?;
@@ -75,6 +76,7 @@ pub fn run(
                 },
                 &config.place.train,
                 &mut |r| {
+                    curve.record(r.epoch as u64 + 1, &[("loss", f64::from(r.loss))]);
                     progress(&BuildEvent::StageProgress {
                         done: r.epoch as u64 + 1,
                         message: format!("{} groups, loss {:.3}", groups.len(), r.loss),

@@ -290,6 +290,8 @@ impl Localizer<'_> {
                 camera: (camera.width, camera.height),
             });
         }
+        let (image, camera) = options::query_at_working_size(image, camera, self.options.max_side);
+        let (image, camera) = (image.as_ref(), &camera);
         let mut clock = StageClock(Vec::new());
         let mut rng = ChaCha8Rng::seed_from_u64(self.options.seed);
 

@@ -1,5 +1,6 @@
 //! Localizer settings.
 
+use matloc_core::{Camera, Image};
 use matloc_match::featuremetric::FeatureMetricConfig;
 use matloc_pnp::PnpOptions;
 use serde::{Deserialize, Serialize};
@@ -68,6 +69,27 @@ pub struct LocalizeOptions {
     /// Options of the pose solver (P3P in LO-RANSAC with LM refinement) of maps loaded with
     /// their own components; each pass sets the inlier threshold from the `*_threshold_cells`.
     pub pnp: PnpOptions,
+    /// A query whose longer side exceeds this is first box-downscaled by the smallest integer
+    /// factor that brings it within (`None`: used as given). A loaded map falls back to its
+    /// working resolution, so queries at camera resolution cost what the map's views cost.
+    pub max_side: Option<u32>,
+}
+
+/// `image` and `camera` reduced to at most `max_side` on the longer side (integer box
+/// downscale, exact `1 / factor` intrinsics), or borrowed unchanged.
+pub fn query_at_working_size<'a>(
+    image: &'a Image<f32>,
+    camera: &Camera,
+    max_side: Option<u32>,
+) -> (std::borrow::Cow<'a, Image<f32>>, Camera) {
+    let f = matloc_data::images::working_factor(camera.width, camera.height, max_side);
+    if f <= 1 {
+        return (std::borrow::Cow::Borrowed(image), *camera);
+    }
+    (
+        std::borrow::Cow::Owned(matloc_data::images::downscale_box(image, f)),
+        matloc_data::images::box_downscaled_camera(camera, f),
+    )
 }
 
 impl Default for LocalizeOptions {
@@ -92,6 +114,7 @@ impl Default for LocalizeOptions {
             max_accept_rotation_deg: 180.0,
             refine_on_all_dims: true,
             pnp: PnpOptions::default(),
+            max_side: None,
         }
     }
 }

@@ -7,6 +7,12 @@ use crate::localizer::confidence::{ConfidenceModel, Evidence};
 /// Name of the partition file inside the map.
 pub const PARTITION_FILE: &str = "partition.json";
 
+/// Which surface the partition used (`matloc_surface::SurfacePlan` and point counts).
+pub const SURFACE_FILE: &str = "surface.json";
+
+/// The sparse points the partition's surface came from, when it came from points (PLY).
+pub const SURFACE_POINTS_FILE: &str = "surface_points.ply";
+
 /// Directory of block `b` inside the map.
 pub fn block_dir(b: usize) -> String {
     format!("blocks/{b}")

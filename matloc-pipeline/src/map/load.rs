@@ -350,7 +350,8 @@ impl LoadedMap {
         })
     }
 
-    /// Localizer options: the stored ones with the calibrated confidence.
+    /// Localizer options: the stored ones with the calibrated confidence, and queries reduced
+    /// to the map's working resolution unless the options set their own.
     pub fn options(&self) -> LocalizeOptions {
         let configured = self.config.localize.max_accept_rotation_deg;
         LocalizeOptions {
@@ -358,6 +359,11 @@ impl LoadedMap {
             max_accept_rotation_deg: self
                 .max_accept_rotation_deg
                 .map_or(configured, |b| b.min(configured)),
+            max_side: self
+                .config
+                .localize
+                .max_side
+                .or(self.config.images.max_side),
             ..self.config.localize.clone()
         }
     }

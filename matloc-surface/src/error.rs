@@ -1,0 +1,57 @@
+//! What finding a surface can fail with.
+
+use std::path::PathBuf;
+
+use matloc_data::DataError;
+use matloc_data::images::ImageLoadError;
+use thiserror::Error;
+
+use crate::kind::SurfaceKind;
+
+/// Errors of the surface stage.
+#[derive(Debug, Error)]
+pub enum SurfaceError {
+    /// Reading the dataset's point cloud failed.
+    #[error(transparent)]
+    Data(#[from] DataError),
+    /// Loading a training image or depth map failed.
+    #[error(transparent)]
+    Image(#[from] ImageLoadError),
+    /// The requested source is not available in the dataset.
+    #[error("surface source `{requested}` is not available: {reason}")]
+    Unavailable {
+        /// The source asked for.
+        requested: &'static str,
+        /// Why not.
+        reason: String,
+    },
+    /// A frame sees too few surface points to stand in for its depth.
+    #[error(
+        "frame {frame} ({image}): the {source_kind} surface gives {found} points in this view, \
+         fewer than the {needed} needed (surface.min_points); add depth maps or a denser point \
+         cloud, or choose another source with --surface"
+    )]
+    TooFewPoints {
+        /// Frame index in the dataset.
+        frame: usize,
+        /// The frame's image.
+        image: PathBuf,
+        /// Where the points came from.
+        source_kind: SurfaceKind,
+        /// Points that project into the view.
+        found: usize,
+        /// The configured minimum.
+        needed: usize,
+    },
+    /// A setting is out of range.
+    #[error("surface config: `{field}` {reason}")]
+    InvalidConfig {
+        /// The setting.
+        field: &'static str,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A frame index outside the dataset.
+    #[error("no frame {0} in the dataset")]
+    NoFrame(usize),
+}
