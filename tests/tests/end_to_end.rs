@@ -22,6 +22,7 @@ use matloc_pipeline::eval::diagnostics::RenderedQueryEncoder;
 use matloc_pipeline::eval::table3::{Table3Config, evaluate, markdown, paired_markdown};
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 use matloc_pipeline::{LocalizeOptions, Localizer, LocalizerBlock, PipelineError};
+use matloc_place::{PlaceHypothesis, PlacePredictor};
 use matloc_pnp::LoRansacPnp;
 use matloc_surface::SurfaceKind;
 use matloc_synth::{SynthConfig, SynthOutput, synthesize, synthesize_with};
@@ -327,16 +328,52 @@ fn selection_on_held_out_renders_picks_distinct_dims_and_types_its_errors() {
 /// A map's surface source and its perfect-encoder errors on the test views.
 struct Outcome {
     surface: String,
-    /// Perfect-encoder translation errors (refusals as ∞), sorted.
+    /// Perfect-encoder translation errors from fixed starts (refusals as ∞), sorted.
     perfect: Vec<f64>,
+    /// Test views whose top place hypothesis is within 5 m of the truth.
+    place_within_5m: usize,
 }
 
 fn median(v: &[f64]) -> f64 {
     0.5 * (v[v.len() / 2 - 1] + v[v.len() / 2])
 }
 
+/// A place predictor that answers one fixed coarse pose (block 0).
+struct FixedStart(Pose);
+
+impl PlacePredictor for FixedStart {
+    fn predict(
+        &self,
+        _: &Image<f32>,
+        _: &matloc_core::Camera,
+        _: usize,
+    ) -> Result<Vec<PlaceHypothesis>, matloc_place::PlaceError> {
+        Ok(vec![PlaceHypothesis {
+            group: 0,
+            score: 1.0,
+            cam_from_world: self.0,
+            block: Some(0),
+        }])
+    }
+}
+
+/// The true pose moved by 1.5 m and turned by 2°, in a direction fixed per view index.
+fn start_of(truth: &Pose, i: usize) -> Pose {
+    let a = i as f64 * 2.399_963; // golden angle: directions spread over the views
+    let t = nalgebra::Vector3::new(a.cos(), a.sin(), 0.3 * (2.0 * a).sin()).normalize() * 1.5;
+    let axis = nalgebra::Unit::new_normalize(nalgebra::Vector3::new(a.sin(), 0.5, a.cos()));
+    let r = nalgebra::UnitQuaternion::from_axis_angle(&axis, 2f64.to_radians());
+    let wfc = truth.inverse();
+    let moved = Pose::from_parts(
+        nalgebra::Translation3::from(wfc.translation.vector + t),
+        wfc.rotation * r,
+    );
+    moved.inverse()
+}
+
 /// Builds a map of `dataset` (unless `config` is `None`: the map exists) and localizes the
-/// test views with the perfect encoder.
+/// test views with the perfect encoder, from fixed starts near the truth; also counts how
+/// often the map's place predictor puts its first hypothesis within 5 m.
 fn build_and_localize(dataset: &Dataset, map_dir: &Path, config: Option<&MapConfig>) -> Outcome {
     let t = std::time::Instant::now();
     if let Some(config) = config {
@@ -349,8 +386,14 @@ fn build_and_localize(dataset: &Dataset, map_dir: &Path, config: Option<&MapConf
     let map = LoadedMap::open(map_dir).unwrap();
     let solver = LoRansacPnp::default();
     let mut perfect = Vec::new();
-    for f in dataset.split(Split::Test) {
+    let mut place_within_5m = 0;
+    for (i, f) in dataset.split(Split::Test).enumerate() {
         let (image, camera) = matloc_data::images::load_frame_image(dataset, f, 1).unwrap();
+        let top = map.place.predict(&image, &camera, 1).unwrap();
+        place_within_5m += usize::from(
+            top.first()
+                .is_some_and(|h| translation_error_m(&h.cam_from_world, &f.cam_from_world) <= 5.0),
+        );
         let blk = &map.blocks.0[0];
         let oracle = RenderedQueryEncoder {
             renderer: blk.renderer.as_ref(),
@@ -359,14 +402,15 @@ fn build_and_localize(dataset: &Dataset, map_dir: &Path, config: Option<&MapConf
             dims: (0..47).collect(),
             stride: 4,
         };
+        let start = FixedStart(start_of(&f.cam_from_world, i));
         let localizer = Localizer {
-            place: map.place.as_ref(),
+            place: &start,
             blocks: vec![LocalizerBlock {
                 renderer: blk.renderer.as_ref(),
                 encoder: &oracle,
                 matcher: blk.matcher.as_ref(),
                 dims: blk.dims.clone(),
-                match_dims: blk.match_dims.clone(),
+                match_dims: None,
             }],
             solver: &solver,
             options: LocalizeOptions::default(),
@@ -382,13 +426,16 @@ fn build_and_localize(dataset: &Dataset, map_dir: &Path, config: Option<&MapConf
     let o = Outcome {
         surface: surface["plan"]["kind"].as_str().unwrap_or("?").to_string(),
         perfect,
+        place_within_5m,
     };
     eprintln!(
-        "{}: surface {}, build {build_s:.0} s, perfect-encoder median {:.3} m (errors {:?})",
+        "{}: surface {}, build {build_s:.0} s, perfect encoder from fixed starts: median {:.3} m \
+         (errors {:.3?}); place top-1 within 5 m: {}/10",
         map_dir.display(),
         o.surface,
         median(&o.perfect),
         o.perfect,
+        o.place_within_5m
     );
     o
 }
@@ -405,10 +452,13 @@ fn without_depth(mut d: Dataset) -> Dataset {
 /// with a `sparse_pc.ply` — against the depth-supplied build above.
 ///
 /// The comparison localizes the test views with the block's NeRF features rendered at the
-/// true pose as the query's (the perfect encoder), so it measures what the surface source
-/// changes — the partition, the blocks' scene boxes, the NeRFs, the place predictor's view
-/// points — without the run-to-run noise of CNN training; the variants therefore train their
-/// encoders for a few steps only (the perfect-encoder path does not use them).
+/// true pose as the query's (the perfect encoder), matching on every rendered dim, from fixed
+/// starts 1.5 m / 2° off the truth: it measures what the surface source changes — the
+/// partition, the block's scene box, the NeRF — without the run-to-run noise of CNN training
+/// (NeRF training is reproducible; the place classifier and encoder are not). The variants
+/// train their encoders for a few steps only (nothing here uses them); their place predictors
+/// (trained on NeRF-rendered depth instead of depth files) must put the first hypothesis
+/// within 5 m for most test views.
 #[test]
 fn maps_without_depth_localize_within_1_5x_of_the_depth_build() {
     let b = built();
@@ -486,6 +536,12 @@ fn maps_without_depth_localize_within_1_5x_of_the_depth_build() {
             failures.push(format!(
                 "{name}: median {m:.3} m > 1.5 × {:.3} m",
                 median(&reference.perfect)
+            ));
+        }
+        if o.place_within_5m + 2 < reference.place_within_5m {
+            failures.push(format!(
+                "{name}: place top-1 within 5 m for {}/10, the depth build {}/10",
+                o.place_within_5m, reference.place_within_5m
             ));
         }
     }

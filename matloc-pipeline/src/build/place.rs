@@ -54,7 +54,14 @@ pub fn run(
                 };
                 let vp = view_point_from_depth(&camera, &f.cam_from_world, &depth, 4)
                     .ok_or_else(|| PipelineError::ViewSeesNoSurface { frame: i })?;
-                images.push(image);
+                // Kept at the size training samples from (twice the network input), not the
+                // working size: memory per image is then independent of the camera.
+                let net = &config.place.train.net;
+                images.push(matloc_place::resize_area(
+                    &image,
+                    2 * net.input_width,
+                    2 * net.input_height,
+                ));
                 poses.push(f.cam_from_world);
                 view_points.push(vp);
             }
