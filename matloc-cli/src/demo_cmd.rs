@@ -11,6 +11,7 @@ use matloc_pipeline::build::MapConfig;
 use matloc_pipeline::methods::Method;
 
 use crate::eval_cmd::{self, EvalArgs};
+use crate::pose_formats::WorldArg;
 use crate::split_args::SplitArgs;
 use crate::{map_cmd, synth_cmd};
 
@@ -73,6 +74,8 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
             queries: 0,
             inerf_queries: args.inerf_queries,
             out: report,
+            format: None,
+            world: WorldArg::Data,
             split: SplitArgs::default(),
         },
         quiet,

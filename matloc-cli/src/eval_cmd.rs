@@ -9,12 +9,15 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use matloc_core::Pose;
 use matloc_pipeline::LoadedMap;
-use matloc_pipeline::methods::{Method, MethodOptions, QueryResult, localize_with};
+use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 use matloc_pipeline::{MethodSummary, QueryOutcome, accuracy_table, summarize, timing_table};
 
-use crate::localize_cmd::{Query, dataset_queries};
 use crate::plot;
+use crate::pose_formats::{
+    Localized, OutputWorld, PoseFormat, QueryRecord, WorldArg, jsonl_record, write_poses,
+};
 use crate::progress;
+use crate::queries::{Query, dataset_queries};
 use crate::split_args::{self, SplitArgs};
 
 /// Arguments of `matloc eval`.
@@ -43,6 +46,14 @@ pub struct EvalArgs {
     /// Report directory (created).
     #[arg(long)]
     pub out: PathBuf,
+    /// Also write each method's poses in this format to OUT/poses/ (`results.jsonl` always
+    /// has them).
+    #[arg(long, value_enum)]
+    pub format: Option<PoseFormat>,
+    /// World of the written poses: `data`, or `original` (undoes the dataset's nerfstudio
+    /// `applied_transform`: the COLMAP world).
+    #[arg(long, value_enum, default_value = "data")]
+    pub world: WorldArg,
     /// Test split for data without one; by default the split the map was built with.
     #[command(flatten)]
     pub split: SplitArgs,
@@ -51,7 +62,7 @@ pub struct EvalArgs {
 /// One method's results.
 struct MethodRun {
     method: Method,
-    results: Vec<QueryResult>,
+    records: Vec<QueryRecord>,
     outcomes: Vec<QueryOutcome>,
     summary: MethodSummary,
 }
@@ -68,6 +79,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
     let split = args.split.for_map(map.dir.manifest().split.as_ref())?;
     split_args::apply(split.as_ref(), &mut dataset)
         .with_context(|| format!("splitting dataset {}", args.data.display()))?;
+    let world = OutputWorld::new(args.world, dataset.metadata.applied_transform)?;
     let queries = dataset_queries(&dataset, &map, args.queries)?;
     if queries.is_empty() {
         bail!("{} has no test views to localize", args.data.display());
@@ -86,23 +98,29 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
         let subset = spaced(&queries, n);
         let bar = progress::bar(subset.len() as u64, method.name(), quiet);
         let t = Instant::now();
-        let mut results = Vec::new();
+        let mut records = Vec::new();
         let mut outcomes = Vec::new();
-        for q in subset {
+        for (index, q) in subset {
             let r = localize_with(&map, method, &q.name, &q.image, &q.camera, &options)
                 .with_context(|| format!("{method} on {}", q.name))?;
             if let Some(gt) = q.cam_from_world {
                 outcomes.push(r.outcome(gt));
             }
             bar.inc(1);
-            results.push(r);
+            records.push(QueryRecord::Done(Box::new(Localized {
+                index,
+                path: q.path.clone(),
+                camera: q.file_camera,
+                result: r,
+                cam_from_world_gt: q.cam_from_world,
+            })));
         }
         bar.finish_and_clear();
         let summary = summarize(method.name(), &outcomes);
         outln!(
             "{:<17} {} queries in {:>6.1} s: median {:.3} m / {:.3}°, refused {:.0} %, {:.3} s/query",
             method.name(),
-            results.len(),
+            records.len(),
             t.elapsed().as_secs_f64(),
             summary.median_translation_m,
             summary.median_rotation_deg,
@@ -111,7 +129,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
         )?;
         runs.push(MethodRun {
             method,
-            results,
+            records,
             outcomes,
             summary,
         });
@@ -120,18 +138,20 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
     // Files.
     let mut lines = String::new();
     for r in &runs {
-        for (res, out) in r.results.iter().zip(&r.outcomes) {
-            let mut v = serde_json::to_value(res)?;
-            if let Some((t, rot)) = out.errors() {
-                v["error_translation_m"] = t.into();
-                v["error_rotation_deg"] = rot.into();
-            }
-            v["cam_from_world_gt"] = serde_json::to_value(out.cam_from_world_gt)?;
-            lines.push_str(&serde_json::to_string(&v)?);
+        for record in &r.records {
+            lines.push_str(&serde_json::to_string(&jsonl_record(record, &world)?)?);
             lines.push('\n');
         }
     }
     write(&args.out.join("results.jsonl"), lines.as_bytes())?;
+    if let Some(format) = args.format {
+        let dir = args.out.join("poses");
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        for r in &runs {
+            let out = dir.join(format.report_name(r.method.name()));
+            write_poses(format, &r.records, &world, &dataset.root, &out)?;
+        }
+    }
     let summaries: Vec<&MethodSummary> = runs.iter().map(|r| &r.summary).collect();
     write(
         &args.out.join("summary.json"),
@@ -151,10 +171,11 @@ fn write(path: &Path, bytes: &[u8]) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
-fn spaced(v: &[Query], n: usize) -> Vec<&Query> {
+/// `n` evenly spaced queries with their positions in `v`.
+fn spaced(v: &[Query], n: usize) -> Vec<(usize, &Query)> {
     matloc_core::subset::evenly_spaced(v.len(), n)
         .into_iter()
-        .map(|i| &v[i])
+        .map(|i| (i, &v[i]))
         .collect()
 }
 
@@ -357,5 +378,13 @@ fn report(
         s,
         "Per-query results: `results.jsonl`; summaries: `summary.json`."
     )?;
+    if let Some(format) = args.format {
+        writeln!(
+            s,
+            "Poses of each method ({}, {} world): `poses/`.",
+            format.name(),
+            args.world.name()
+        )?;
+    }
     Ok(s)
 }

@@ -16,7 +16,9 @@ mod nerf_cmd;
 mod partition_cmd;
 mod place_cmd;
 mod plot;
+mod pose_formats;
 mod progress;
+mod queries;
 mod split_args;
 mod synth_cmd;
 
@@ -93,7 +95,8 @@ enum Command {
         #[command(subcommand)]
         command: map_cmd::MapCommand,
     },
-    /// Localize query images against a map (one JSON line per query).
+    /// Localize query images against a map; write their poses (JSON lines, hloc, TUM, COLMAP,
+    /// nerfstudio).
     Localize(localize_cmd::LocalizeArgs),
     /// Localize a dataset's test views with each method; write a report with tables and plots.
     Eval(eval_cmd::EvalArgs),

@@ -1,0 +1,757 @@
+//! Pose output of `localize` and `eval`: JSON lines, hloc's results file, a TUM trajectory, a
+//! COLMAP text model (or its `images.txt` alone) and nerfstudio `transforms.json`. Writers take
+//! finished [`QueryRecord`]s; they neither read images nor localize.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::ValueEnum;
+use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_core::pose::{camera_center, colmap_from_cam_from_world};
+use matloc_core::{Camera, Pose};
+use matloc_data::colmap::{ColmapCamera, ColmapFormat, ColmapImage, ColmapModel, write_colmap};
+use matloc_data::dataset::{Dataset, Frame, SceneMetadata, Split};
+use matloc_data::nerfstudio::{applied_transform_pose, write_nerfstudio};
+use matloc_pipeline::methods::QueryResult;
+use serde_json::{Value, json};
+
+/// A pose output format.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum PoseFormat {
+    /// One JSON object per query: pose (`qvec_wxyz`, `tvec`), confidence, times, errors.
+    Jsonl,
+    /// COLMAP text model directory (cameras, images, empty points3D), or `images.txt` alone
+    /// on stdout or to a `.txt` file.
+    Colmap,
+    /// hloc / visuallocalization.net results: `NAME QW QX QY QZ TX TY TZ` (cam_from_world).
+    Hloc,
+    /// TUM trajectory for evo: `timestamp tx ty tz qx qy qz qw` (camera-to-world).
+    Tum,
+    /// nerfstudio `transforms.json` of the localized frames.
+    Nerfstudio,
+}
+
+impl PoseFormat {
+    /// Command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            PoseFormat::Jsonl => "jsonl",
+            PoseFormat::Colmap => "colmap",
+            PoseFormat::Hloc => "hloc",
+            PoseFormat::Tum => "tum",
+            PoseFormat::Nerfstudio => "nerfstudio",
+        }
+    }
+
+    /// Whether `out` (or stdout, `None`) receives the format line by line; the others are
+    /// written as a whole by [`write_poses`].
+    pub fn is_line_based(self, out: Option<&Path>) -> bool {
+        match self {
+            PoseFormat::Jsonl | PoseFormat::Hloc | PoseFormat::Tum => true,
+            PoseFormat::Colmap => out.is_none_or(is_txt),
+            PoseFormat::Nerfstudio => false,
+        }
+    }
+
+    /// Checks that the format can go to `out` (stdout when `None`).
+    pub fn check_destination(self, out: Option<&Path>) -> Result<()> {
+        if self == PoseFormat::Nerfstudio && out.is_none() {
+            bail!("--format nerfstudio writes a file: give --out FILE.json or --out DIR");
+        }
+        Ok(())
+    }
+
+    /// File (or directory) name for one method's poses in an `eval` report.
+    pub fn report_name(self, method: &str) -> String {
+        match self {
+            PoseFormat::Jsonl => format!("{method}.jsonl"),
+            PoseFormat::Hloc => format!("{method}_hloc.txt"),
+            PoseFormat::Tum => format!("{method}.tum"),
+            PoseFormat::Colmap | PoseFormat::Nerfstudio => method.to_string(),
+        }
+    }
+}
+
+fn is_txt(p: &Path) -> bool {
+    p.extension().is_some_and(|e| e.eq_ignore_ascii_case("txt"))
+}
+
+/// Which world written poses are in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ValueEnum)]
+pub enum WorldArg {
+    /// The world of the data the map was built from (and of `--data`).
+    #[default]
+    Data,
+    /// The original (COLMAP) world before nerfstudio's `applied_transform`.
+    Original,
+}
+
+impl WorldArg {
+    /// Command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            WorldArg::Data => "data",
+            WorldArg::Original => "original",
+        }
+    }
+}
+
+/// The world the written poses are in, and how to get there from the data's world.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OutputWorld {
+    kind: WorldArg,
+    /// `world_from_original` when poses are re-expressed in the original world.
+    world_from_original: Option<Pose>,
+    /// The data's `applied_transform`, recorded in nerfstudio output in the data world.
+    applied_transform: Option<[[f64; 4]; 3]>,
+}
+
+impl OutputWorld {
+    /// The world `kind` for data whose `applied_transform` is `applied` (`None`: the data's
+    /// world is its original world).
+    pub fn new(kind: WorldArg, applied: Option<[[f64; 4]; 3]>) -> Result<Self> {
+        let world_from_original = match (kind, &applied) {
+            (WorldArg::Original, Some(a)) => {
+                Some(applied_transform_pose(a).context("the data's applied_transform")?)
+            }
+            _ => None,
+        };
+        Ok(OutputWorld {
+            kind,
+            world_from_original,
+            applied_transform: applied,
+        })
+    }
+
+    /// Name written in JSON records: `data` or `original`.
+    pub fn name(&self) -> &'static str {
+        self.kind.name()
+    }
+
+    /// A data-world `cam_from_world` in the output world.
+    pub fn pose(&self, cam_from_world: &Pose) -> Pose {
+        match &self.world_from_original {
+            Some(world_from_original) => cam_from_world * world_from_original,
+            None => *cam_from_world,
+        }
+    }
+
+    /// The `applied_transform` that maps the original world into the output world, if any.
+    fn applied_transform(&self) -> Option<[[f64; 4]; 3]> {
+        match self.kind {
+            WorldArg::Data => self.applied_transform,
+            WorldArg::Original => None,
+        }
+    }
+}
+
+/// A query whose method ran (it returned a pose or refused).
+#[derive(Clone, Debug)]
+pub struct Localized {
+    /// Position in the batch (0-based).
+    pub index: usize,
+    /// The image file.
+    pub path: PathBuf,
+    /// Intrinsics at the image file's size.
+    pub camera: Camera,
+    /// The method's result (name, pose in the data's world, statistics).
+    pub result: QueryResult,
+    /// Ground truth in the data's world, when known.
+    pub cam_from_world_gt: Option<Pose>,
+}
+
+/// One query of a batch, as the writers take it.
+#[derive(Clone, Debug)]
+pub enum QueryRecord {
+    /// The method ran.
+    Done(Box<Localized>),
+    /// The query failed: its image, its camera or the method.
+    Failed {
+        /// Query name.
+        name: String,
+        /// The error with its causes.
+        error: String,
+    },
+}
+
+impl QueryRecord {
+    /// Query name.
+    pub fn name(&self) -> &str {
+        match self {
+            QueryRecord::Done(l) => &l.result.name,
+            QueryRecord::Failed { name, .. } => name,
+        }
+    }
+
+    /// The pose in the data's world, when the query was localized.
+    pub fn cam_from_world(&self) -> Option<&Pose> {
+        match self {
+            QueryRecord::Done(l) => l.result.cam_from_world.as_ref(),
+            QueryRecord::Failed { .. } => None,
+        }
+    }
+}
+
+/// Why `record` has no place in `format`'s output (only JSONL keeps refusals and failures).
+pub fn omission(format: PoseFormat, record: &QueryRecord) -> Option<String> {
+    if format == PoseFormat::Jsonl {
+        return None;
+    }
+    let why = match record {
+        QueryRecord::Failed { .. } => "it failed".to_string(),
+        QueryRecord::Done(l) if l.result.cam_from_world.is_none() => "not localized".to_string(),
+        QueryRecord::Done(l) => match format {
+            PoseFormat::Hloc if l.result.name.chars().any(char::is_whitespace) => {
+                "its name contains whitespace".to_string()
+            }
+            PoseFormat::Colmap if l.camera.distortion.k3 != 0.0 => {
+                "its intrinsics have k3, which COLMAP's OPENCV model lacks".to_string()
+            }
+            _ => return None,
+        },
+    };
+    Some(why)
+}
+
+/// `[w, x, y, z]` (w ≥ 0) and translation of `pose`, COLMAP's order.
+fn qvec_tvec(pose: &Pose) -> ([f64; 4], [f64; 3]) {
+    colmap_from_cam_from_world(pose)
+}
+
+/// The JSON record of one query (schema in `matloc-cli/README.md`).
+pub fn jsonl_record(record: &QueryRecord, world: &OutputWorld) -> Result<Value> {
+    let l = match record {
+        QueryRecord::Failed { name, error, .. } => {
+            return Ok(json!({"name": name, "error": error}));
+        }
+        QueryRecord::Done(l) => l,
+    };
+    let r = &l.result;
+    let mut v = serde_json::to_value(r)?;
+    let obj = v
+        .as_object_mut()
+        .context("a result serialises to an object")?;
+    obj.remove("cam_from_world");
+    let pose = r.cam_from_world.map(|p| world.pose(&p));
+    let (q, t) = pose.as_ref().map(qvec_tvec).unzip();
+    obj.insert("qvec_wxyz".into(), json!(q));
+    obj.insert("tvec".into(), json!(t));
+    let center: Option<[f64; 3]> = pose.map(|p| camera_center(&p).coords.into());
+    obj.insert("camera_center".into(), json!(center));
+    obj.insert("world".into(), json!(world.name()));
+    if let Some(Value::Array(hyps)) = obj.get_mut("hypotheses") {
+        for (hv, h) in hyps.iter_mut().zip(&r.hypotheses) {
+            if let Some(ho) = hv.as_object_mut() {
+                ho.remove("coarse_cam_from_world");
+                let (q, t) = qvec_tvec(&world.pose(&h.coarse_cam_from_world));
+                ho.insert("coarse_qvec_wxyz".into(), json!(q));
+                ho.insert("coarse_tvec".into(), json!(t));
+            }
+        }
+    }
+    if let Some(gt) = &l.cam_from_world_gt {
+        let (q, t) = qvec_tvec(&world.pose(gt));
+        obj.insert("gt_qvec_wxyz".into(), json!(q));
+        obj.insert("gt_tvec".into(), json!(t));
+        if let Some(est) = &r.cam_from_world {
+            obj.insert(
+                "error_translation_m".into(),
+                json!(translation_error_m(est, gt)),
+            );
+            obj.insert(
+                "error_rotation_deg".into(),
+                json!(rotation_error_deg(est, gt)),
+            );
+        }
+    }
+    Ok(v)
+}
+
+/// The TUM timestamp of a query: its image's file stem when that is a number (TUM RGB-D names
+/// images by time, `1305031102.175304.png`), else its position in the batch.
+pub fn tum_timestamp(name: &str, index: usize) -> f64 {
+    Path::new(name)
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .and_then(|s| s.parse::<f64>().ok())
+        .filter(|t| t.is_finite())
+        .unwrap_or(index as f64)
+}
+
+/// Text before the first record (`None`: nothing).
+pub fn header(format: PoseFormat) -> Option<&'static str> {
+    match format {
+        PoseFormat::Tum => Some("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n"),
+        PoseFormat::Colmap => Some(
+            "# Image list with two lines of data per image:\n\
+             #   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n\
+             #   POINTS2D[] as (X, Y, POINT3D_ID)\n",
+        ),
+        PoseFormat::Jsonl | PoseFormat::Hloc | PoseFormat::Nerfstudio => None,
+    }
+}
+
+/// The text of one record in a line-based format (with its newline), `None` when the record
+/// is left out (see [`omission`]).
+pub fn record_text(
+    format: PoseFormat,
+    record: &QueryRecord,
+    world: &OutputWorld,
+) -> Result<Option<String>> {
+    if format == PoseFormat::Jsonl {
+        return Ok(Some(format!(
+            "{}\n",
+            serde_json::to_string(&jsonl_record(record, world)?)?
+        )));
+    }
+    if omission(format, record).is_some() {
+        return Ok(None);
+    }
+    let (QueryRecord::Done(l), Some(p)) = (record, record.cam_from_world()) else {
+        return Ok(None);
+    };
+    let cam_from_world = world.pose(p);
+    let name = &l.result.name;
+    Ok(Some(match format {
+        PoseFormat::Hloc => {
+            let (q, t) = qvec_tvec(&cam_from_world);
+            format!(
+                "{name} {} {} {} {} {} {} {}\n",
+                q[0], q[1], q[2], q[3], t[0], t[1], t[2]
+            )
+        }
+        PoseFormat::Tum => {
+            // Camera-to-world: translation = camera centre, rotation = world_from_cam.
+            let (q, t) = qvec_tvec(&cam_from_world.inverse());
+            format!(
+                "{} {} {} {} {} {} {} {}\n",
+                tum_timestamp(name, l.index),
+                t[0],
+                t[1],
+                t[2],
+                q[1],
+                q[2],
+                q[3],
+                q[0]
+            )
+        }
+        PoseFormat::Colmap => {
+            let (q, t) = qvec_tvec(&cam_from_world);
+            let id = l.index + 1;
+            format!(
+                "{id} {} {} {} {} {} {} {} {id} {name}\n\n",
+                q[0], q[1], q[2], q[3], t[0], t[1], t[2]
+            )
+        }
+        PoseFormat::Jsonl | PoseFormat::Nerfstudio => bail!("{} is not line-based", format.name()),
+    }))
+}
+
+/// The whole text of a line-based format.
+pub fn render_text(
+    format: PoseFormat,
+    records: &[QueryRecord],
+    world: &OutputWorld,
+) -> Result<String> {
+    let mut s = header(format).unwrap_or_default().to_string();
+    for r in records {
+        if let Some(line) = record_text(format, r, world)? {
+            s.push_str(&line);
+        }
+    }
+    Ok(s)
+}
+
+/// The localized queries as a COLMAP model: image and camera ids are the batch position + 1,
+/// each query has its own camera (PINHOLE or OPENCV), and there are no points.
+pub fn colmap_model(records: &[QueryRecord], world: &OutputWorld) -> ColmapModel {
+    let mut model = ColmapModel::default();
+    for r in records {
+        let (QueryRecord::Done(l), Some(p)) = (r, r.cam_from_world()) else {
+            continue;
+        };
+        let id = (l.index + 1) as u32;
+        let Some(camera) = ColmapCamera::from_camera(id, &l.camera) else {
+            continue;
+        };
+        model.cameras.insert(id, camera);
+        model.images.insert(
+            id,
+            ColmapImage {
+                id,
+                name: l.result.name.clone(),
+                camera_id: id,
+                cam_from_world: world.pose(p),
+                points2d: Vec::new(),
+            },
+        );
+    }
+    model
+}
+
+/// The localized queries as a nerfstudio dataset (test frames) with image paths relative to
+/// `root` and the output world's `applied_transform`.
+pub fn nerfstudio_dataset(records: &[QueryRecord], world: &OutputWorld, root: &Path) -> Dataset {
+    let frames = records
+        .iter()
+        .filter(|r| omission(PoseFormat::Nerfstudio, r).is_none())
+        .filter_map(|r| match (r, r.cam_from_world()) {
+            (QueryRecord::Done(l), Some(p)) => Some(Frame {
+                image_path: l.path.strip_prefix(root).unwrap_or(&l.path).to_path_buf(),
+                depth_path: None,
+                camera: l.camera,
+                cam_from_world: world.pose(p),
+                split: Split::Test,
+            }),
+            _ => None,
+        })
+        .collect();
+    Dataset {
+        root: root.to_path_buf(),
+        frames,
+        metadata: SceneMetadata {
+            applied_transform: world.applied_transform(),
+            ..SceneMetadata::default()
+        },
+        points: None,
+    }
+}
+
+/// Writes `records` in `format` to `out`: a line-based format as one file, written atomically
+/// from memory; COLMAP as a text model directory (unless `out` ends in `.txt`); nerfstudio as
+/// `out` (a `.json` file) or `out/transforms.json`. `root` is the directory image paths are
+/// relative to.
+pub fn write_poses(
+    format: PoseFormat,
+    records: &[QueryRecord],
+    world: &OutputWorld,
+    root: &Path,
+    out: &Path,
+) -> Result<()> {
+    if format.is_line_based(Some(out)) {
+        let text = render_text(format, records, world)?;
+        return matloc_core::fsutil::write_atomic(out, text.as_bytes())
+            .with_context(|| format!("writing {}", out.display()));
+    }
+    match format {
+        PoseFormat::Colmap => write_colmap(&colmap_model(records, world), out, ColmapFormat::Text)
+            .with_context(|| format!("writing the COLMAP model {}", out.display())),
+        _ => write_nerfstudio(&nerfstudio_dataset(records, world, root), out)
+            .with_context(|| format!("writing {}", out.display())),
+    }
+}
+
+/// One line saying what a batch gave: localized, not localized, failed.
+pub fn summary(records: &[QueryRecord]) -> String {
+    let failed = records
+        .iter()
+        .filter(|r| matches!(r, QueryRecord::Failed { .. }))
+        .count();
+    let localized = records
+        .iter()
+        .filter(|r| r.cam_from_world().is_some())
+        .count();
+    format!(
+        "{} queries: {localized} localized, {} not localized, {failed} failed",
+        records.len(),
+        records.len() - localized - failed
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matloc_core::pose::cam_from_world_from_colmap;
+    use matloc_data::nerfstudio::{cam_from_world_from_original, read_nerfstudio};
+    use matloc_pipeline::methods::Method;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    fn pose(i: usize) -> Pose {
+        let a = 0.3 + i as f64;
+        Pose::from_parts(
+            Translation3::new(1.5 * a, -2.0 + a, 0.25 * a * a),
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.4 * a, -0.7, 0.2 * a.sin())),
+        )
+    }
+
+    fn result(name: &str, cam_from_world: Option<Pose>) -> QueryResult {
+        QueryResult {
+            name: name.into(),
+            method: Method::Matloc,
+            localized: cam_from_world.is_some(),
+            cam_from_world,
+            camera_center: cam_from_world.map(|p| camera_center(&p).coords.into()),
+            confidence: Some(0.9),
+            inliers: 42,
+            iterations: 2,
+            hypotheses: Vec::new(),
+            stage_seconds: vec![("place".into(), 0.1)],
+            total_seconds: 0.5,
+        }
+    }
+
+    /// Five queries: 0, 1, 3 localized (1 with a numeric name), 2 refused, 4 failed.
+    fn records(root: &Path) -> Vec<QueryRecord> {
+        let cam = Camera::pinhole(64, 48, 50.0, 51.0, 32.0, 24.5).unwrap();
+        let names = ["a.png", "seq/1305031102.175304.png", "c.png", "d.png"];
+        let mut out: Vec<QueryRecord> = names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| {
+                let p = (i != 2).then(|| pose(i));
+                QueryRecord::Done(Box::new(Localized {
+                    index: i,
+                    path: root.join(n),
+                    camera: cam,
+                    result: result(n, p),
+                    cam_from_world_gt: (i == 0).then(|| pose(7)),
+                }))
+            })
+            .collect();
+        out.push(QueryRecord::Failed {
+            name: "e.png".into(),
+            error: "reading query image e.png: corrupt".into(),
+        });
+        out
+    }
+
+    fn assert_same(a: &Pose, b: &Pose) {
+        assert!(a.rotation.angle_to(&b.rotation) < 1e-9, "{a} vs {b}");
+        assert!(
+            (a.translation.vector - b.translation.vector).norm() < 1e-9,
+            "{a} vs {b}"
+        );
+    }
+
+    fn applied() -> [[f64; 4]; 3] {
+        let r = UnitQuaternion::from_scaled_axis(Vector3::new(0.1, 0.2, -1.2))
+            .to_rotation_matrix()
+            .into_inner();
+        let t = [3.0, -1.0, 0.5];
+        std::array::from_fn(|i| [r[(i, 0)], r[(i, 1)], r[(i, 2)], t[i]])
+    }
+
+    /// The expected output-world poses of the localized records, by name.
+    fn expected(records: &[QueryRecord], world: &OutputWorld) -> Vec<(String, Pose)> {
+        records
+            .iter()
+            .filter_map(|r| {
+                r.cam_from_world()
+                    .map(|p| (r.name().to_string(), world.pose(p)))
+            })
+            .collect()
+    }
+
+    fn worlds() -> [OutputWorld; 2] {
+        [
+            OutputWorld::new(WorldArg::Data, Some(applied())).unwrap(),
+            OutputWorld::new(WorldArg::Original, Some(applied())).unwrap(),
+        ]
+    }
+
+    #[test]
+    fn original_world_undoes_applied_transform() {
+        let world = OutputWorld::new(WorldArg::Original, Some(applied())).unwrap();
+        let p = pose(3);
+        let back = cam_from_world_from_original(&applied(), &world.pose(&p)).unwrap();
+        assert_same(&back, &p);
+        // Same camera centre mapped by x_data = R x_original + t.
+        let a = applied_transform_pose(&applied()).unwrap();
+        let c_orig = camera_center(&world.pose(&p));
+        assert!((a.transform_point(&c_orig) - camera_center(&p)).norm() < 1e-9);
+        let none = OutputWorld::new(WorldArg::Original, None).unwrap();
+        assert_same(&none.pose(&p), &p);
+    }
+
+    #[test]
+    fn jsonl_round_trips_qvec_wxyz_and_tvec() {
+        let dir = tempfile::tempdir().unwrap();
+        for world in worlds() {
+            let recs = records(dir.path());
+            let text = render_text(PoseFormat::Jsonl, &recs, &world).unwrap();
+            let lines: Vec<Value> = text
+                .lines()
+                .map(|l| serde_json::from_str(l).unwrap())
+                .collect();
+            assert_eq!(lines.len(), 5);
+            let mut got = Vec::new();
+            for v in &lines {
+                if v["qvec_wxyz"].is_array() {
+                    let q: [f64; 4] = serde_json::from_value(v["qvec_wxyz"].clone()).unwrap();
+                    let t: [f64; 3] = serde_json::from_value(v["tvec"].clone()).unwrap();
+                    assert!(q[0] >= 0.0);
+                    let p = cam_from_world_from_colmap(q, t).unwrap();
+                    let c: [f64; 3] = serde_json::from_value(v["camera_center"].clone()).unwrap();
+                    assert!((camera_center(&p).coords - Vector3::from(c)).norm() < 1e-9);
+                    assert_eq!(v["world"], world.name());
+                    got.push((v["name"].as_str().unwrap().to_string(), p));
+                }
+                assert!(v.get("cam_from_world").is_none());
+            }
+            let want = expected(&recs, &world);
+            assert_eq!(got.len(), want.len());
+            for ((gn, gp), (wn, wp)) in got.iter().zip(&want) {
+                assert_eq!(gn, wn);
+                assert_same(gp, wp);
+            }
+            assert_eq!(lines[2]["localized"], false);
+            assert!(lines[2]["qvec_wxyz"].is_null());
+            assert_eq!(
+                lines[4],
+                json!({"name": "e.png", "error": "reading query image e.png: corrupt"})
+            );
+            let gq: [f64; 4] = serde_json::from_value(lines[0]["gt_qvec_wxyz"].clone()).unwrap();
+            let gt: [f64; 3] = serde_json::from_value(lines[0]["gt_tvec"].clone()).unwrap();
+            assert_same(
+                &cam_from_world_from_colmap(gq, gt).unwrap(),
+                &world.pose(&pose(7)),
+            );
+            assert!(lines[0]["error_translation_m"].as_f64().unwrap() > 0.0);
+        }
+    }
+
+    #[test]
+    fn hloc_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        for world in worlds() {
+            let recs = records(dir.path());
+            let text = render_text(PoseFormat::Hloc, &recs, &world).unwrap();
+            let got: Vec<(String, Pose)> = text
+                .lines()
+                .map(|l| {
+                    let f: Vec<&str> = l.split_whitespace().collect();
+                    assert_eq!(f.len(), 8, "{l}");
+                    let v: Vec<f64> = f[1..].iter().map(|x| x.parse().unwrap()).collect();
+                    let p =
+                        cam_from_world_from_colmap([v[0], v[1], v[2], v[3]], [v[4], v[5], v[6]])
+                            .unwrap();
+                    (f[0].to_string(), p)
+                })
+                .collect();
+            let want = expected(&recs, &world);
+            assert_eq!(got.len(), 3);
+            for ((gn, gp), (wn, wp)) in got.iter().zip(&want) {
+                assert_eq!(gn, wn);
+                assert_same(gp, wp);
+            }
+        }
+    }
+
+    #[test]
+    fn tum_round_trips_camera_to_world() {
+        let dir = tempfile::tempdir().unwrap();
+        for world in worlds() {
+            let recs = records(dir.path());
+            let text = render_text(PoseFormat::Tum, &recs, &world).unwrap();
+            let rows: Vec<Vec<f64>> = text
+                .lines()
+                .filter(|l| !l.starts_with('#'))
+                .map(|l| l.split_whitespace().map(|x| x.parse().unwrap()).collect())
+                .collect();
+            assert_eq!(rows.len(), 3);
+            let want = expected(&recs, &world);
+            for (row, (_, wp)) in rows.iter().zip(&want) {
+                let world_from_cam = Pose::from_parts(
+                    Translation3::new(row[1], row[2], row[3]),
+                    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                        row[7], row[4], row[5], row[6],
+                    )),
+                );
+                assert_same(&world_from_cam.inverse(), wp);
+                assert!(
+                    (Vector3::new(row[1], row[2], row[3]) - camera_center(wp).coords).norm() < 1e-9
+                );
+            }
+            // Timestamps: batch position, or the numeric file stem.
+            assert_eq!(rows[0][0], 0.0);
+            assert_eq!(rows[1][0], 1305031102.175304);
+            assert_eq!(rows[2][0], 3.0);
+        }
+        assert_eq!(tum_timestamp("x/17.png", 4), 17.0);
+        assert_eq!(tum_timestamp("frame_17.png", 4), 4.0);
+        assert_eq!(tum_timestamp("inf.png", 4), 4.0);
+    }
+
+    #[test]
+    fn colmap_round_trips_as_model_directory_and_images_txt() {
+        let dir = tempfile::tempdir().unwrap();
+        for world in worlds() {
+            let recs = records(dir.path());
+            let want = expected(&recs, &world);
+            let model_dir = dir.path().join(format!("model_{}", world.name()));
+            write_poses(PoseFormat::Colmap, &recs, &world, dir.path(), &model_dir).unwrap();
+            for f in ["cameras.txt", "images.txt", "points3D.txt"] {
+                assert!(model_dir.join(f).is_file(), "{f}");
+            }
+            let model = matloc_data::colmap::read_colmap(&model_dir).unwrap();
+            assert_eq!(model.images.len(), 3);
+            assert!(model.points3d.is_empty());
+            let ids: Vec<u32> = model.images.keys().copied().collect();
+            assert_eq!(ids, [1, 2, 4]);
+            for (img, (wn, wp)) in model.images.values().zip(&want) {
+                assert_eq!(&img.name, wn);
+                assert_same(&img.cam_from_world, wp);
+                let cam = model.cameras[&img.camera_id].to_camera().unwrap();
+                assert_eq!(
+                    cam,
+                    Camera::pinhole(64, 48, 50.0, 51.0, 32.0, 24.5).unwrap()
+                );
+            }
+
+            let listing = dir.path().join(format!("images_{}.txt", world.name()));
+            write_poses(PoseFormat::Colmap, &recs, &world, dir.path(), &listing).unwrap();
+            let text = std::fs::read(&listing).unwrap();
+            let images = matloc_data::colmap::parse_images_text(&text, &listing).unwrap();
+            assert_eq!(images.len(), 3);
+            for (img, (wn, wp)) in images.values().zip(&want) {
+                assert_eq!(&img.name, wn);
+                assert_same(&img.cam_from_world, wp);
+                assert!(img.points2d.is_empty());
+            }
+        }
+    }
+
+    #[test]
+    fn nerfstudio_round_trips_with_intrinsics_and_world() {
+        let dir = tempfile::tempdir().unwrap();
+        for world in worlds() {
+            let recs = records(dir.path());
+            let want = expected(&recs, &world);
+            let out = dir.path().join(format!("ns_{}", world.name()));
+            write_poses(PoseFormat::Nerfstudio, &recs, &world, dir.path(), &out).unwrap();
+            let ds = read_nerfstudio(&out).unwrap();
+            assert_eq!(ds.frames.len(), 3);
+            assert_eq!(ds.metadata.applied_transform, world.applied_transform());
+            for (f, (wn, wp)) in ds.frames.iter().zip(&want) {
+                assert_eq!(ds.image_path(f), dir.path().join(wn));
+                assert_same(&f.cam_from_world, wp);
+                assert_eq!(
+                    f.camera,
+                    Camera::pinhole(64, 48, 50.0, 51.0, 32.0, 24.5).unwrap()
+                );
+                assert_eq!(f.split, Split::Test);
+            }
+        }
+    }
+
+    #[test]
+    fn omissions_name_the_reason() {
+        let dir = tempfile::tempdir().unwrap();
+        let recs = records(dir.path());
+        assert_eq!(
+            omission(PoseFormat::Hloc, &recs[2]).unwrap(),
+            "not localized"
+        );
+        assert_eq!(omission(PoseFormat::Tum, &recs[4]).unwrap(), "it failed");
+        assert!(omission(PoseFormat::Jsonl, &recs[4]).is_none());
+        assert!(omission(PoseFormat::Hloc, &recs[0]).is_none());
+        assert_eq!(
+            summary(&recs),
+            "5 queries: 3 localized, 1 not localized, 1 failed"
+        );
+        assert!(PoseFormat::Nerfstudio.check_destination(None).is_err());
+        assert!(PoseFormat::Colmap.is_line_based(None));
+        assert!(PoseFormat::Colmap.is_line_based(Some(Path::new("x/images.txt"))));
+        assert!(!PoseFormat::Colmap.is_line_based(Some(Path::new("x/model"))));
+    }
+}
