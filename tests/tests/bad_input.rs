@@ -13,7 +13,13 @@ fn tiny(name: &str, output: SynthOutput) -> (PathBuf, matloc_data::Dataset) {
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
     let _ = std::fs::remove_dir_all(&dir);
     let data = dir.join("data");
-    synthesize_with(&SynthConfig::preset("tiny").unwrap(), &data, &output, &|_| {}).unwrap();
+    synthesize_with(
+        &SynthConfig::preset("tiny").unwrap(),
+        &data,
+        &output,
+        &|_| {},
+    )
+    .unwrap();
     let dataset = read_dataset(&data).unwrap();
     (dir, dataset)
 }
@@ -53,7 +59,10 @@ fn a_surface_source_the_dataset_lacks_stops_the_build_before_the_map_exists() {
     let e = build_map(&dataset, &out, &config, &mut |_| {})
         .unwrap_err()
         .to_string();
-    assert!(e.contains("missing.ply") && e.contains("does not exist"), "{e}");
+    assert!(
+        e.contains("missing.ply") && e.contains("does not exist"),
+        "{e}"
+    );
     assert!(!out.exists());
 }
 

@@ -18,6 +18,9 @@ use crate::map::layout::PLACE_DIR;
 use crate::map::load::load_nerf;
 use crate::map::manifest::MapDir;
 
+/// Pixel stride of the NeRF depth render that stands in for a missing depth file.
+const NERF_DEPTH_STRIDE: u32 = 8;
+
 /// Builds the pose groups and trains the place classifier.
 pub fn run(
     dataset: &Dataset,
@@ -36,23 +39,34 @@ pub fn run(
             let mut images = Vec::with_capacity(train_idx.len());
             let mut poses = Vec::with_capacity(train_idx.len());
             let mut view_points = Vec::with_capacity(train_idx.len());
+            // Block NeRFs, loaded when a view without a depth file first needs one.
+            let mut nerfs = Vec::new();
             for (k, &i) in train_idx.iter().enumerate() {
                 let f = &dataset.frames[i];
                 let (image, camera) = load_image(dataset, i)?;
-                let depth = match matloc_data::images::load_frame_depth(dataset, f, 1) {
-                    Ok(Some(d)) => d,
-                    // No depth in the dataset: the block's NeRF renders it.
+                // The view point is a mean over the seen surface: every 4th depth pixel of a
+                // depth file, or the block's NeRF rendered on a grid of every 8th pixel when
+                // the dataset has no depth (a full-resolution render per view cost minutes).
+                let (depth, stride) = match matloc_data::images::load_frame_depth(dataset, f, 1) {
+                    Ok(Some(d)) => (d, 4),
                     _ => {
                         let b = partition.block_of_member(k).unwrap_or(0);
-                        let r = load_nerf(map, b, 0)?;
+                        if nerfs.len() <= b {
+                            nerfs.resize_with(b + 1, || None);
+                        }
+                        if nerfs[b].is_none() {
+                            nerfs[b] = Some(load_nerf(map, b, 0)?);
+                        }
+                        let r = nerfs[b].as_ref().expect("loaded above");
                         let v = r
-                            .render_view(&camera, &f.cam_from_world, 1, &[])
+                            .render_view(&camera, &f.cam_from_world, NERF_DEPTH_STRIDE, &[])
                             .map_err(PipelineError::ViewRender)?;
-                        Image::from_vec(v.cols, v.rows, 1, v.depth_z)
-                            .map_err(|_| PipelineError::Internal("depth image shape"))?
+                        let d = Image::from_vec(v.cols, v.rows, 1, v.depth_z)
+                            .map_err(|_| PipelineError::Internal("depth image shape"))?;
+                        (d, 1)
                     }
                 };
-                let vp = view_point_from_depth(&camera, &f.cam_from_world, &depth, 4)
+                let vp = view_point_from_depth(&camera, &f.cam_from_world, &depth, stride)
                     .ok_or_else(|| PipelineError::ViewSeesNoSurface { frame: i })?;
                 // Kept at the size training samples from (twice the network input), not the
                 // working size: memory per image is then independent of the camera.
