@@ -77,6 +77,7 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
             format: None,
             world: WorldArg::Data,
             split: SplitArgs::default(),
+            thresholds: Vec::new(),
         },
         quiet,
     )?;

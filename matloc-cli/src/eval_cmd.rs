@@ -10,7 +10,9 @@ use clap::Args;
 use matloc_core::Pose;
 use matloc_pipeline::LoadedMap;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
-use matloc_pipeline::{MethodSummary, QueryOutcome, accuracy_table, summarize, timing_table};
+use matloc_pipeline::{
+    MethodSummary, QueryOutcome, RecallThreshold, accuracy_table, summarize_with, timing_table,
+};
 
 use crate::plot;
 use crate::pose_formats::{
@@ -57,6 +59,15 @@ pub struct EvalArgs {
     /// Test split for data without one; by default the split the map was built with.
     #[command(flatten)]
     pub split: SplitArgs,
+    /// Recall thresholds as METRES,DEGREES pairs (repeat or separate with spaces), e.g.
+    /// `--thresholds 0.25,2 0.5,5 5,10`; the loosest also defines a false accept. Default:
+    /// 0.25,2 0.5,5 1,5 5,10.
+    #[arg(long, num_args = 1.., value_parser = parse_threshold)]
+    pub thresholds: Vec<RecallThreshold>,
+}
+
+fn parse_threshold(s: &str) -> Result<RecallThreshold, String> {
+    RecallThreshold::parse(s)
 }
 
 /// One method's results.
@@ -116,7 +127,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
             })));
         }
         bar.finish_and_clear();
-        let summary = summarize(method.name(), &outcomes);
+        let summary = summarize_with(method.name(), &outcomes, &args.thresholds);
         outln!(
             "{:<17} {} queries in {:>6.1} s: median {:.3} m / {:.3}°, refused {:.0} %, {:.3} s/query",
             method.name(),

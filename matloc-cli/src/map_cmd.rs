@@ -1,4 +1,5 @@
-//! `matloc map build|info`: build (or resume) a map, summarise one.
+//! `matloc map build|info|verify|config`: build (or resume) a map, summarise or check one,
+//! print the default build configuration.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -8,6 +9,7 @@ use clap::{Args, Subcommand};
 use indicatif::{MultiProgress, ProgressBar};
 use matloc_pipeline::MapDir;
 use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
+use matloc_pipeline::map::MapError;
 use matloc_pipeline::map::layout::{
     CONFIDENCE_FILE, CalibrationRecord, SelectionRecord, required_stages, selection_file,
 };
@@ -21,13 +23,26 @@ pub enum MapCommand {
     /// Build a map: partition, sub-NeRFs, GT pairs, encoders, selection, place, calibration.
     /// A killed build resumes where it stopped when run again with the same config.
     Build(BuildArgs),
-    /// Summarise a map: blocks, sizes, selected dims, stage times.
+    /// Summarise a map: blocks, sizes, selected dims, stage times. Fails (after the summary)
+    /// when the map is incomplete or damaged, with the reasons on stderr.
     Info {
         /// Map directory.
         map: PathBuf,
         /// Print the manifest summary as JSON.
         #[arg(long)]
         json: bool,
+    },
+    /// Check a map: every listed file against its size and checksum, every stage a complete
+    /// map has, and the files each stage writes. One line per problem; fails on any.
+    Verify {
+        /// Map directory.
+        map: PathBuf,
+    },
+    /// Build configuration.
+    Config {
+        /// Print the full default configuration as JSON (a starting point for `--config`).
+        #[arg(long, required = true)]
+        print_default: bool,
     },
 }
 
@@ -43,7 +58,8 @@ pub struct BuildArgs {
     /// Test split for data without one (recorded in the map).
     #[command(flatten)]
     pub split: SplitArgs,
-    /// Build configuration (JSON; missing fields take their defaults).
+    /// Build configuration (JSON; missing fields take their defaults, unknown fields are an
+    /// error; `matloc map config --print-default` prints all of them).
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Override the sub-NeRF training steps per block.
@@ -106,6 +122,13 @@ pub fn run(cmd: &MapCommand, quiet: bool) -> Result<()> {
             build(&a.data, &a.out, &config, &a.split, quiet)
         }
         MapCommand::Info { map, json } => info(map, *json),
+        MapCommand::Verify { map } => verify(map),
+        MapCommand::Config { .. } => {
+            outln!(
+                "{}",
+                serde_json::to_string_pretty(&MapConfig::default()).context("map config")?
+            )
+        }
     }
 }
 
@@ -204,14 +227,60 @@ pub fn build(
     Ok(())
 }
 
+/// Fails naming the count when `problems` is not empty.
+fn fail_on(root: &Path, problems: &[MapError]) -> Result<()> {
+    match problems.len() {
+        0 => Ok(()),
+        n => anyhow::bail!(
+            "map {}: {n} problem{}",
+            root.display(),
+            if n == 1 { "" } else { "s" }
+        ),
+    }
+}
+
+fn verify(root: &Path) -> Result<()> {
+    let map =
+        MapDir::open_manifest(root).with_context(|| format!("opening map {}", root.display()))?;
+    let problems = map.problems();
+    for p in &problems {
+        outln!("{p}")?;
+    }
+    fail_on(root, &problems)?;
+    outln!(
+        "map {}: ok ({} files, {} stages)",
+        root.display(),
+        map.manifest().files.len(),
+        map.manifest().stages.len()
+    )
+}
+
 fn info(root: &Path, json: bool) -> Result<()> {
-    let map = MapDir::open(root).with_context(|| format!("opening map {}", root.display()))?;
+    let map =
+        MapDir::open_manifest(root).with_context(|| format!("opening map {}", root.display()))?;
     let m = map.manifest();
     let missing: Vec<String> = required_stages(m.blocks.len())
         .into_iter()
         .filter(|s| !map.stage_done(s))
         .collect();
-    let verified = map.verify().map(|_| ()).map_err(|e| e.to_string());
+    let problems = map.problems();
+    let file_problems = problems
+        .iter()
+        .filter(|p| {
+            !matches!(
+                p,
+                MapError::StageMissing { .. } | MapError::StageFileNotListed { .. }
+            )
+        })
+        .count();
+    let unlisted = problems
+        .iter()
+        .filter(|p| matches!(p, MapError::StageFileNotListed { .. }))
+        .count();
+    let verified = match problems.first() {
+        Some(p) if file_problems > 0 => Err(p.to_string()),
+        _ => Ok(()),
+    };
     let selections: Vec<Option<SelectionRecord>> = (0..m.blocks.len())
         .map(|b| map.read_json(&selection_file(b)).ok())
         .collect();
@@ -239,9 +308,11 @@ fn info(root: &Path, json: bool) -> Result<()> {
             "files": m.files.len(),
             "bytes": map.total_bytes(),
             "checksums": match &verified { Ok(()) => "ok".to_string(), Err(e) => e.clone() },
+            "problems": problems.iter().map(|p| p.to_string()).collect::<Vec<_>>(),
         });
         outln!("{}", serde_json::to_string_pretty(&doc)?)?;
-        return Ok(());
+        report_problems(&problems);
+        return fail_on(root, &problems);
     }
     outln!(
         "map {} (format v{}, {})",
@@ -258,15 +329,18 @@ fn info(root: &Path, json: bool) -> Result<()> {
         map.total_bytes() as f64 / 1e6,
         match &verified {
             Ok(()) => "ok".to_string(),
-            Err(e) => format!("FAILED: {e}"),
+            Err(e) if file_problems == 1 => format!("FAILED: {e}"),
+            Err(e) => format!("FAILED on {file_problems} files, first: {e}"),
         }
     )?;
     outln!(
         "  status       {}",
-        if missing.is_empty() {
-            "complete".to_string()
-        } else {
+        if !missing.is_empty() {
             format!("incomplete, next stage {}", missing[0])
+        } else if unlisted > 0 {
+            format!("incomplete, {unlisted} files of completed stages not listed")
+        } else {
+            "complete".to_string()
         }
     )?;
     outln!("  blocks:")?;
@@ -308,7 +382,15 @@ fn info(root: &Path, json: bool) -> Result<()> {
     for s in &m.stages {
         outln!("    {:<14} {:>8.1} s", s.name, s.seconds)?;
     }
-    Ok(())
+    report_problems(&problems);
+    fail_on(root, &problems)
+}
+
+/// One line per problem on stderr.
+fn report_problems(problems: &[MapError]) {
+    for p in problems {
+        eprintln!("problem: {p}");
+    }
 }
 
 #[cfg(test)]

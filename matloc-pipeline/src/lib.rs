@@ -32,7 +32,7 @@ pub use config::MapConfig;
 pub use error::PipelineError;
 pub use eval::{
     MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
-    timing_table,
+    summarize_with, timing_table,
 };
 pub use localizer::options::LocalizeOptions;
 pub use localizer::{

@@ -12,5 +12,5 @@ pub mod tables;
 
 pub use tables::{
     MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
-    timing_table,
+    summarize_with, timing_table,
 };

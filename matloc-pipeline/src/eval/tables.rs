@@ -18,11 +18,16 @@ pub struct RecallThreshold {
     pub rotation_deg: f64,
 }
 
-/// The thresholds reported for every method: (0.25 m, 2°), (1 m, 5°), (5 m, 10°).
-pub const RECALL_THRESHOLDS: [RecallThreshold; 3] = [
+/// The default thresholds reported for every method: (0.25 m, 2°), (0.5 m, 5°) — the common
+/// pair of the visual-localization benchmarks —, the paper's (1 m, 5°), and (5 m, 10°).
+pub const RECALL_THRESHOLDS: [RecallThreshold; 4] = [
     RecallThreshold {
         translation_m: 0.25,
         rotation_deg: 2.0,
+    },
+    RecallThreshold {
+        translation_m: 0.5,
+        rotation_deg: 5.0,
     },
     RecallThreshold {
         translation_m: 1.0,
@@ -33,6 +38,37 @@ pub const RECALL_THRESHOLDS: [RecallThreshold; 3] = [
         rotation_deg: 10.0,
     },
 ];
+
+impl RecallThreshold {
+    /// Parses `T,R` (metres, degrees), e.g. `0.25,2`.
+    pub fn parse(text: &str) -> Result<RecallThreshold, String> {
+        let (t, r) = text
+            .split_once(',')
+            .ok_or_else(|| format!("threshold `{text}`: expected METRES,DEGREES"))?;
+        let num = |v: &str, what: &str| -> Result<f64, String> {
+            let x: f64 = v
+                .trim()
+                .parse()
+                .map_err(|_| format!("threshold `{text}`: {what} `{v}` is not a number"))?;
+            if x.is_finite() && x > 0.0 {
+                Ok(x)
+            } else {
+                Err(format!(
+                    "threshold `{text}`: {what} must be positive and finite"
+                ))
+            }
+        };
+        Ok(RecallThreshold {
+            translation_m: num(t, "metres")?,
+            rotation_deg: num(r, "degrees")?,
+        })
+    }
+
+    /// The column label, e.g. `0.25 m, 2°`.
+    pub fn label(&self) -> String {
+        format!("{} m, {}°", self.translation_m, self.rotation_deg)
+    }
+}
 
 /// The result of localizing one query with one method.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -82,7 +118,7 @@ pub struct MethodSummary {
     pub median_translation_accepted_m: f64,
     /// Median rotation error over accepted queries (NaN when none), degrees.
     pub median_rotation_accepted_deg: f64,
-    /// Fraction of all queries within each threshold of [`RECALL_THRESHOLDS`].
+    /// Fraction of all queries within each threshold (by default [`RECALL_THRESHOLDS`]).
     pub recall: Vec<(RecallThreshold, f64)>,
     /// Fraction of queries refused.
     pub refusal_rate: f64,
@@ -125,8 +161,23 @@ fn percentile(values: &[f64], q: f64) -> f64 {
     v[rank - 1]
 }
 
-/// Summarises one method's outcomes.
+/// Summarises one method's outcomes at the default thresholds ([`RECALL_THRESHOLDS`]).
 pub fn summarize(method: &str, outcomes: &[QueryOutcome]) -> MethodSummary {
+    summarize_with(method, outcomes, &RECALL_THRESHOLDS)
+}
+
+/// Summarises one method's outcomes at `thresholds` (the loosest, by translation, defines a
+/// false accept; none given means the defaults).
+pub fn summarize_with(
+    method: &str,
+    outcomes: &[QueryOutcome],
+    thresholds: &[RecallThreshold],
+) -> MethodSummary {
+    let thresholds = if thresholds.is_empty() {
+        &RECALL_THRESHOLDS[..]
+    } else {
+        thresholds
+    };
     let n = outcomes.len();
     let errors: Vec<Option<(f64, f64)>> = outcomes.iter().map(QueryOutcome::errors).collect();
     let accepted: Vec<(f64, f64)> = errors.iter().flatten().copied().collect();
@@ -143,11 +194,18 @@ pub fn summarize(method: &str, outcomes: &[QueryOutcome]) -> MethodSummary {
     let frac = |count: usize| if n == 0 { 0.0 } else { count as f64 / n as f64 };
     let within =
         |e: &(f64, f64), th: &RecallThreshold| e.0 <= th.translation_m && e.1 <= th.rotation_deg;
-    let recall = RECALL_THRESHOLDS
+    let recall = thresholds
         .iter()
         .map(|th| (*th, frac(accepted.iter().filter(|e| within(e, th)).count())))
         .collect();
-    let loosest = RECALL_THRESHOLDS[RECALL_THRESHOLDS.len() - 1];
+    let loosest = *thresholds
+        .iter()
+        .max_by(|a, b| {
+            (a.translation_m, a.rotation_deg)
+                .partial_cmp(&(b.translation_m, b.rotation_deg))
+                .unwrap_or(std::cmp::Ordering::Equal)
+        })
+        .expect("thresholds are not empty");
     let false_accepts = accepted.iter().filter(|e| !within(e, &loosest)).count();
     let times: Vec<f64> = outcomes.iter().map(|o| o.total_seconds).collect();
     let mut stage_names: Vec<String> = Vec::new();
@@ -213,9 +271,18 @@ fn fmt_num(v: f64, decimals: usize) -> String {
 
 /// The paper's Table 1 layout (accuracy) as a markdown table.
 pub fn accuracy_table(summaries: &[MethodSummary]) -> String {
-    let mut s = String::from(
-        "| method | median t (m) | median r (°) | median t / r accepted | recall 0.25 m, 2° | recall 1 m, 5° | recall 5 m, 10° | refused | false accept |\n|---|---|---|---|---|---|---|---|---|\n",
-    );
+    // Recall columns from the first summary's thresholds (all are summarised alike).
+    let thresholds: Vec<RecallThreshold> = summaries
+        .first()
+        .map(|m| m.recall.iter().map(|(t, _)| *t).collect())
+        .unwrap_or_else(|| RECALL_THRESHOLDS.to_vec());
+    let mut s = String::from("| method | median t (m) | median r (°) | median t / r accepted |");
+    for t in &thresholds {
+        s.push_str(&format!(" recall {} |", t.label()));
+    }
+    s.push_str(" refused | false accept |\n|---|---|---|---|");
+    s.push_str(&"---|".repeat(thresholds.len() + 2));
+    s.push('\n');
     for m in summaries {
         let recall: Vec<String> = m
             .recall
@@ -299,7 +366,7 @@ mod tests {
         assert_eq!(s.refusal_rate, 0.25);
         assert_eq!(s.false_accept_rate, 0.25);
         assert_eq!(s.recall[0].1, 0.5);
-        assert_eq!(s.recall[2].1, 0.5);
+        assert_eq!(s.recall[3].1, 0.5);
         assert!((s.mean_seconds - 1.5).abs() < 1e-12);
         assert_eq!(s.p95_seconds, 3.0);
         assert_eq!(s.stage_mean_seconds[0].0, "match");
@@ -309,6 +376,40 @@ mod tests {
         assert!(all_refused.median_translation_accepted_m.is_nan());
         let table = accuracy_table(&[s, all_refused]);
         assert!(table.contains("| r | ∞ | ∞ | — / — |"), "{table}");
+    }
+
+    #[test]
+    fn thresholds_are_configurable_and_the_loosest_defines_a_false_accept() {
+        let outs = vec![
+            outcome(Some(0.3), 1.0),
+            outcome(Some(0.8), 1.0),
+            outcome(Some(3.0), 1.0),
+        ];
+        let th = [
+            RecallThreshold::parse("0.5,5").unwrap(),
+            RecallThreshold::parse("2, 10").unwrap(),
+        ];
+        let s = summarize_with("m", &outs, &th);
+        let got: Vec<f64> = s.recall.iter().map(|r| r.1).collect();
+        assert_eq!(got, [1.0 / 3.0, 2.0 / 3.0]);
+        assert!((s.false_accept_rate - 1.0 / 3.0).abs() < 1e-12);
+        let table = accuracy_table(&[s]);
+        assert!(
+            table.contains("| recall 0.5 m, 5° | recall 2 m, 10° | refused |"),
+            "{table}"
+        );
+        assert_eq!(table.lines().nth(1).unwrap().matches("---").count(), 8);
+        // The defaults carry the common (0.5 m, 5°) next to the paper's three.
+        let d = summarize("m", &outs);
+        assert_eq!(d.recall.len(), 4);
+        assert!(
+            accuracy_table(&[d]).contains(
+                "recall 0.25 m, 2° | recall 0.5 m, 5° | recall 1 m, 5° | recall 5 m, 10°"
+            )
+        );
+        for bad in ["1", "a,2", "0,2", "1,-3", "1,inf"] {
+            assert!(RecallThreshold::parse(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -83,3 +83,29 @@ pub fn required_stages(blocks: usize) -> Vec<String> {
     v.push("calibration".into());
     v
 }
+
+/// Files a completed stage must list in the manifest (empty for an unknown stage).
+pub fn stage_files(stage: &str) -> Vec<String> {
+    let block = |b: &str| b.parse::<usize>().ok();
+    match stage.split_once('/') {
+        None => match stage {
+            "partition" => vec![PARTITION_FILE.to_string()],
+            "place" => [matloc_place::MODEL_JSON, matloc_place::MODEL_WEIGHTS]
+                .iter()
+                .map(|f| format!("{PLACE_DIR}/{f}"))
+                .collect(),
+            "calibration" => vec![CONFIDENCE_FILE.to_string()],
+            _ => Vec::new(),
+        },
+        Some((kind, b)) => match (kind, block(b)) {
+            ("nerf", Some(b)) => [matloc_render::CONFIG_FILE, matloc_render::WEIGHTS_FILE]
+                .iter()
+                .map(|f| format!("{}/{f}", block_dir(b)))
+                .collect(),
+            ("pairs", Some(b)) => vec![pairs_file(b)],
+            ("encoder", Some(b)) => vec![encoder_file(b)],
+            ("select", Some(b)) => vec![selection_file(b)],
+            _ => Vec::new(),
+        },
+    }
+}

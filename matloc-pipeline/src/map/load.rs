@@ -24,9 +24,9 @@ use crate::localizer::options::LocalizeOptions;
 use crate::localizer::{Localizer, LocalizerBlock, QueryFeatureEncoder, positions_of};
 use crate::map::layout::{
     CONFIDENCE_FILE, CalibrationRecord, PARTITION_FILE, PLACE_DIR, SelectionRecord, block_dir,
-    encoder_file, required_stages, selection_file,
+    encoder_file, selection_file,
 };
-use crate::map::manifest::MapDir;
+use crate::map::manifest::{MapDir, MapError};
 
 /// `model` rendering with `steps` march steps per ray (0 = unchanged).
 fn with_render_steps(model: NerfModel, steps: usize) -> Result<NerfModel, PipelineError> {
@@ -324,16 +324,18 @@ impl LoadedMap {
         dir.verify()?;
         let config: MapConfig = serde_json::from_value(dir.manifest().config.clone())
             .map_err(|source| PipelineError::ManifestConfig { source })?;
+        let complete = |blocks: usize| match dir.completeness(blocks).into_iter().next() {
+            None => Ok(()),
+            Some(MapError::StageMissing { stage }) => Err(PipelineError::Incomplete {
+                root: root.to_path_buf(),
+                stage,
+            }),
+            Some(e) => Err(e.into()),
+        };
+        complete(dir.manifest().blocks.len())?;
         let partition: Partition = dir.read_json(PARTITION_FILE)?;
         let n = partition.blocks.len();
-        for s in required_stages(n) {
-            if !dir.stage_done(&s) {
-                return Err(PipelineError::Incomplete {
-                    root: root.to_path_buf(),
-                    stage: s,
-                });
-            }
-        }
+        complete(n)?;
         let blocks = LoadedBlocks::load(&dir, n, &config.localize, components)?;
         let place = components.place(&dir, &config)?;
         let solver = components.solver(&config.localize);

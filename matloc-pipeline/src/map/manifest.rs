@@ -22,6 +22,8 @@ use matloc_data::split::SplitSpec;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::map::layout::{required_stages, stage_files};
+
 /// The manifest format version this build reads and writes. Bump it on any incompatible
 /// change of the manifest or of a stage's files.
 pub const MANIFEST_VERSION: u32 = 1;
@@ -114,6 +116,20 @@ pub enum MapError {
         recorded: String,
         /// The requested rule (JSON), or `none`.
         requested: String,
+    },
+    /// A stage a complete map has did not complete.
+    #[error("stage {stage} has not completed (the map is incomplete)")]
+    StageMissing {
+        /// The first such stage.
+        stage: String,
+    },
+    /// A completed stage's file is not listed in the manifest.
+    #[error("{name}: written by stage {stage} but not listed in the map manifest")]
+    StageFileNotListed {
+        /// The stage.
+        stage: String,
+        /// The file.
+        name: String,
     },
     /// Resuming a build whose recorded config differs from the requested one.
     #[error(
@@ -244,6 +260,62 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
     s
 }
 
+/// What a JSON value is, for messages ("a string", "an integer", ...).
+fn json_kind(v: &serde_json::Value) -> &'static str {
+    use serde_json::Value;
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(n) if n.is_u64() => "an integer",
+        Value::Number(n) if n.is_i64() => "a negative integer",
+        Value::Number(_) => "a fractional number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}
+
+/// Checks the manifest's top-level fields: each present with the JSON type its field has
+/// (`split` may be null), the required ones present.
+fn check_field_types(value: &serde_json::Value) -> Result<(), String> {
+    use serde_json::Value;
+    let Value::Object(fields) = value else {
+        return Err(format!("expected an object, found {}", json_kind(value)));
+    };
+    let string = |v: &Value| v.is_string();
+    let integer = |v: &Value| v.is_u64();
+    let any = |_: &Value| true;
+    let array = |v: &Value| v.is_array();
+    let object = |v: &Value| v.is_object();
+    let object_or_null = |v: &Value| v.is_object() || v.is_null();
+    type Check<'a> = (&'a str, bool, &'a str, &'a dyn Fn(&Value) -> bool);
+    let checks: [Check; 9] = [
+        ("format", true, "a string", &string),
+        ("version", true, "an integer", &integer),
+        ("created_by", true, "a string", &string),
+        ("config", true, "any value", &any),
+        ("scene", false, "any value", &any),
+        ("split", false, "an object or null", &object_or_null),
+        ("blocks", false, "an array", &array),
+        ("stages", false, "an array", &array),
+        ("files", false, "an object", &object),
+    ];
+    for (name, required, expected, ok) in checks {
+        match fields.get(name) {
+            None if required => return Err(format!("missing `{name}`")),
+            None => {}
+            Some(v) if !ok(v) => {
+                return Err(format!(
+                    "`{name}`: expected {expected}, found {}",
+                    json_kind(v)
+                ));
+            }
+            Some(_) => {}
+        }
+    }
+    Ok(())
+}
+
 /// Checks that `name` is a relative path of normal components (no `..`, no root).
 fn checked_name(name: &str) -> Result<&str, MapError> {
     let path = Path::new(name);
@@ -288,6 +360,23 @@ impl MapDir {
     /// exists with its recorded size. Checksums are verified when files are read
     /// ([`MapDir::read_file`]) or all at once by [`MapDir::verify`].
     pub fn open(root: &Path) -> Result<Self, MapError> {
+        let dir = Self::open_manifest(root)?;
+        for (name, entry) in &dir.manifest.files {
+            let p = dir.root.join(name);
+            let meta = fs::metadata(&p).map_err(file_err(&p))?;
+            if meta.len() != entry.bytes {
+                return Err(MapError::SizeMismatch {
+                    path: p,
+                    expected: entry.bytes,
+                    actual: meta.len(),
+                });
+            }
+        }
+        Ok(dir)
+    }
+
+    /// Parses and checks the manifest only; the files are checked by [`MapDir::problems`].
+    pub fn open_manifest(root: &Path) -> Result<Self, MapError> {
         let path = root.join(MANIFEST_FILE);
         if !path.is_file() {
             return Err(MapError::NotAMap {
@@ -306,24 +395,19 @@ impl MapDir {
                 message: format!("\"format\" is not \"{MANIFEST_FORMAT}\""),
             });
         }
+        check_field_types(&value).map_err(|message| MapError::Malformed {
+            path: path.clone(),
+            message,
+        })?;
         // Check the version before the schema, so an old or new map reports its version
         // instead of a field-level parse error.
-        let found = value.get("version").and_then(|v| v.as_u64());
-        match found {
-            Some(v) if v == u64::from(MANIFEST_VERSION) => {}
-            Some(v) => {
-                return Err(MapError::Version {
-                    path,
-                    found: u32::try_from(v).unwrap_or(u32::MAX),
-                    supported: MANIFEST_VERSION,
-                });
-            }
-            None => {
-                return Err(MapError::Malformed {
-                    path,
-                    message: "missing \"version\"".into(),
-                });
-            }
+        let found = value.get("version").and_then(|v| v.as_u64()).unwrap_or(0);
+        if found != u64::from(MANIFEST_VERSION) {
+            return Err(MapError::Version {
+                path,
+                found: u32::try_from(found).unwrap_or(u32::MAX),
+                supported: MANIFEST_VERSION,
+            });
         }
         let manifest: Manifest =
             serde_json::from_value(value).map_err(|e| MapError::Malformed {
@@ -333,22 +417,10 @@ impl MapDir {
         for name in manifest.files.keys() {
             checked_name(name)?;
         }
-        let dir = Self {
+        Ok(Self {
             root: root.to_path_buf(),
             manifest,
-        };
-        for (name, entry) in &dir.manifest.files {
-            let p = dir.root.join(name);
-            let meta = fs::metadata(&p).map_err(file_err(&p))?;
-            if meta.len() != entry.bytes {
-                return Err(MapError::SizeMismatch {
-                    path: p,
-                    expected: entry.bytes,
-                    actual: meta.len(),
-                });
-            }
-        }
-        Ok(dir)
+        })
     }
 
     /// The map's root directory.
@@ -456,6 +528,42 @@ impl MapDir {
             self.read_file(name)?;
         }
         Ok(())
+    }
+
+    /// What keeps the map from being complete with `blocks` blocks: the first required stage
+    /// not done, and each required file of a done stage the manifest does not list.
+    pub fn completeness(&self, blocks: usize) -> Vec<MapError> {
+        let stages = required_stages(blocks);
+        let mut problems: Vec<MapError> = stages
+            .iter()
+            .find(|s| !self.stage_done(s))
+            .map(|s| MapError::StageMissing { stage: s.clone() })
+            .into_iter()
+            .collect();
+        for stage in stages.iter().filter(|s| self.stage_done(s)) {
+            for name in stage_files(stage) {
+                if !self.manifest.files.contains_key(&name) {
+                    problems.push(MapError::StageFileNotListed {
+                        stage: stage.clone(),
+                        name,
+                    });
+                }
+            }
+        }
+        problems
+    }
+
+    /// Every problem of the map: each listed file missing, resized or with another checksum,
+    /// then [`MapDir::completeness`] for the manifest's blocks. Empty for a complete map.
+    pub fn problems(&self) -> Vec<MapError> {
+        let mut problems: Vec<MapError> = self
+            .manifest
+            .files
+            .keys()
+            .filter_map(|name| self.read_file(name).err())
+            .collect();
+        problems.extend(self.completeness(self.manifest.blocks.len()));
+        problems
     }
 
     /// Whether a stage has completed (in this build or the one being resumed).
