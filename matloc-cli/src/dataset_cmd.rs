@@ -7,14 +7,19 @@ use matloc_data::Split;
 use matloc_data::summary::{self, detect_format};
 use matloc_surface::SurfaceChoice;
 
-/// Reads the dataset, checks every referenced file and prints the summary. Fails (non-zero
-/// exit) when the dataset cannot be read or any file problem is found.
-pub fn info(path: &Path, json: bool) -> Result<()> {
+/// Reads the dataset, checks every referenced file (headers, or every byte with `deep`) and the
+/// plausibility of intrinsics and poses, and prints the summary. Fails (non-zero exit) when the
+/// dataset cannot be read or any problem is found.
+pub fn info(path: &Path, json: bool, deep: bool) -> Result<()> {
     let format = detect_format(path)?;
     let dataset = summary::read_dataset(path)
         .with_context(|| format!("reading dataset at {}", path.display()))?;
     let summary = summary::summarize(&dataset);
-    let problems = summary::validate(&dataset);
+    let problems = if deep {
+        summary::validate_deep(&dataset)
+    } else {
+        summary::validate(&dataset)
+    };
     // What a map build (default surface settings) would partition on.
     let train = dataset.split_indices(Split::Train);
     let surface = matloc_surface::plan(&dataset, &train, SurfaceChoice::Auto)?;

@@ -113,6 +113,10 @@ enum DatasetCommand {
         /// Print the summary as JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// Decode every image and depth map in full (not only the headers): finds truncated
+        /// or corrupt files.
+        #[arg(long)]
+        deep: bool,
     },
     /// Convert another dataset layout into a nerfstudio transforms.json.
     Import {
@@ -143,8 +147,8 @@ fn main() -> ExitCode {
             synth_cmd::run(&preset, &out, seed, width, &output, cli.quiet)
         }
         Command::Dataset {
-            command: DatasetCommand::Info { path, json },
-        } => dataset_cmd::info(&path, json),
+            command: DatasetCommand::Info { path, json, deep },
+        } => dataset_cmd::info(&path, json, deep),
         Command::Dataset {
             command: DatasetCommand::Import { format },
         } => import_cmd::run(&format),

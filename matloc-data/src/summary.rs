@@ -425,6 +425,22 @@ impl fmt::Display for DatasetSummary {
 pub enum Problem {
     /// The dataset has no frames.
     NoFrames,
+    /// A frame's intrinsics are physically impossible (see [`plausibility`]).
+    ImplausibleCamera {
+        /// Frame index.
+        frame: usize,
+        /// The field (`fx`, `cx`, `width`, `distortion`, ...).
+        field: &'static str,
+        /// The bound it breaks and the value.
+        reason: String,
+    },
+    /// A frame's pose is not usable (non-finite, or farther than the stated scene scale).
+    ImplausiblePose {
+        /// Frame index.
+        frame: usize,
+        /// What is wrong.
+        reason: String,
+    },
     /// A frame's image file does not exist.
     MissingImage {
         /// Frame index.
@@ -494,6 +510,14 @@ impl fmt::Display for Problem {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Problem::NoFrames => write!(f, "the dataset has no frames"),
+            Problem::ImplausibleCamera {
+                frame,
+                field,
+                reason,
+            } => write!(f, "frame {frame}: intrinsics `{field}`: {reason}"),
+            Problem::ImplausiblePose { frame, reason } => {
+                write!(f, "frame {frame}: pose: {reason}")
+            }
             Problem::MissingImage { frame, path } => {
                 write!(f, "frame {frame}: image not found: {}", path.display())
             }
@@ -555,13 +579,185 @@ impl fmt::Display for Problem {
     }
 }
 
+/// Largest image side accepted, pixels (a 65 536-pixel side is beyond any survey camera; a
+/// header claiming more would have the pipeline allocate for it).
+pub const MAX_IMAGE_SIDE: u32 = 65_536;
+
+/// Narrowest and widest horizontal / vertical field of view accepted, degrees.
+pub const FOV_RANGE_DEG: (f64, f64) = (0.5, 170.0);
+
+/// Farthest camera centre from the world origin accepted, metres (ECEF coordinates fit).
+pub const MAX_SCENE_M: f64 = 1.0e7;
+
+/// Physically impossible intrinsics and poses, without touching the files: image sides in
+/// `1..=`[`MAX_IMAGE_SIDE`]; focal lengths giving a field of view inside [`FOV_RANGE_DEG`]; the
+/// principal point within a quarter of the image outside its borders; lens distortion
+/// invertible at the image's corners and edge midpoints and changing the ray radius there by
+/// at most 4×; finite rigid poses with the camera
+/// within [`MAX_SCENE_M`] of the origin. Empty = plausible.
+pub fn plausibility(dataset: &Dataset) -> Vec<Problem> {
+    let mut problems = Vec::new();
+    for (i, f) in dataset.frames.iter().enumerate() {
+        let c = &f.camera;
+        let mut bad = |field: &'static str, reason: String| {
+            problems.push(Problem::ImplausibleCamera {
+                frame: i,
+                field,
+                reason,
+            })
+        };
+        let mut sides_ok = true;
+        for (field, v) in [("width", c.width), ("height", c.height)] {
+            if v == 0 || v > MAX_IMAGE_SIDE {
+                bad(field, format!("{v} px is outside 1..={MAX_IMAGE_SIDE}"));
+                sides_ok = false;
+            }
+        }
+        if !sides_ok {
+            continue;
+        }
+        let (lo, hi) = FOV_RANGE_DEG;
+        for (field, focal, side) in [("fx", c.fx, c.width), ("fy", c.fy, c.height)] {
+            let side = f64::from(side);
+            let fov = 2.0 * (side / (2.0 * focal)).atan().to_degrees();
+            if !(focal.is_finite() && focal > 0.0 && (lo..=hi).contains(&fov)) {
+                bad(
+                    field,
+                    format!(
+                        "{focal} px gives a {fov:.3}° field of view over {side} px, outside {lo}–{hi}°"
+                    ),
+                );
+            }
+        }
+        for (field, p, side) in [("cx", c.cx, c.width), ("cy", c.cy, c.height)] {
+            let side = f64::from(side);
+            if !(p.is_finite() && p >= -0.25 * side && p <= 1.25 * side) {
+                bad(
+                    field,
+                    format!("{p} px lies more than a quarter of the image ({side} px) outside it"),
+                );
+            }
+        }
+        if !c.distortion.is_none() {
+            let (w, h) = (f64::from(c.width), f64::from(c.height));
+            let probes = [
+                (0.0, 0.0),
+                (w, 0.0),
+                (0.0, h),
+                (w, h),
+                (w / 2.0, 0.0),
+                (w / 2.0, h),
+                (0.0, h / 2.0),
+                (w, h / 2.0),
+            ];
+            // Invertible, and not moving a border pixel's ray by more than 4× in radius (a
+            // real lens, fisheye aside, stays far within that).
+            for (x, y) in probes {
+                let px = nalgebra::Point2::new(x, y);
+                let distorted = c.pixel_to_distorted_normalized(px).norm();
+                match c.pixel_to_normalized(px) {
+                    None => {
+                        bad(
+                            "distortion",
+                            format!(
+                                "cannot be inverted at pixel ({x}, {y}): the lens model folds over there"
+                            ),
+                        );
+                        break;
+                    }
+                    Some(n)
+                        if distorted > 1e-9 && !(0.25..=4.0).contains(&(n.norm() / distorted)) =>
+                    {
+                        bad(
+                            "distortion",
+                            format!(
+                                "changes the ray radius at pixel ({x}, {y}) by {:.3e}×, beyond 4×",
+                                n.norm() / distorted
+                            ),
+                        );
+                        break;
+                    }
+                    Some(_) => {}
+                }
+            }
+        }
+        let centre = f.center();
+        let finite = f
+            .cam_from_world
+            .translation
+            .vector
+            .iter()
+            .all(|v| v.is_finite())
+            && f.cam_from_world
+                .rotation
+                .coords
+                .iter()
+                .all(|v| v.is_finite());
+        if !finite {
+            problems.push(Problem::ImplausiblePose {
+                frame: i,
+                reason: "not finite".into(),
+            });
+        } else if centre.coords.norm() > MAX_SCENE_M {
+            problems.push(Problem::ImplausiblePose {
+                frame: i,
+                reason: format!(
+                    "camera centre {:.3e} m from the origin, beyond {MAX_SCENE_M:.0e} m",
+                    centre.coords.norm()
+                ),
+            });
+        }
+    }
+    problems
+}
+
+/// [`validate`], then every image and depth map decoded in full (not only its header): a
+/// truncated PNG / JPEG or a depth file of the wrong dtype is found here.
+pub fn validate_deep(dataset: &Dataset) -> Vec<Problem> {
+    use rayon::prelude::*;
+    let mut problems = validate(dataset);
+    let decoded: Vec<Problem> = dataset
+        .frames
+        .par_iter()
+        .enumerate()
+        .flat_map_iter(|(i, frame)| {
+            let mut out = Vec::new();
+            let path = dataset.image_path(frame);
+            if path.is_file()
+                && let Err(e) = crate::images::load_rgb(&path)
+            {
+                out.push(Problem::UnreadableImage {
+                    frame: i,
+                    path,
+                    reason: e.to_string(),
+                });
+            }
+            if let Some(path) = dataset.depth_path(frame)
+                && path.is_file()
+                && let Err(e) = crate::images::read_depth(&path, crate::images::PNG_DEPTH_SCALE_M)
+            {
+                out.push(Problem::UnreadableDepth {
+                    frame: i,
+                    path,
+                    reason: e.to_string(),
+                });
+            }
+            out
+        })
+        .collect();
+    problems.extend(decoded);
+    problems
+}
+
 /// Checks that every referenced image and depth file exists and that its size matches the
-/// intrinsics or differs only by a rescale (reading file headers only). Empty = valid.
+/// intrinsics or differs only by a rescale (reading file headers only), and that intrinsics
+/// and poses are plausible ([`plausibility`]). Empty = valid.
 pub fn validate(dataset: &Dataset) -> Vec<Problem> {
     let mut problems = Vec::new();
     if dataset.frames.is_empty() {
         problems.push(Problem::NoFrames);
     }
+    problems.extend(plausibility(dataset));
     let mut seen: HashMap<PathBuf, usize> = HashMap::new();
     for (i, frame) in dataset.frames.iter().enumerate() {
         let cam = &frame.camera;

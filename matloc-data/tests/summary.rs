@@ -182,3 +182,98 @@ fn read_dataset_propagates_format_errors() {
     );
     assert!(err.to_string().contains("transforms.json"));
 }
+
+/// Each physically impossible frame is named with the field and the bound it breaks; the
+/// Camera constructor's own checks are bypassed (readers build cameras field by field).
+#[test]
+fn impossible_intrinsics_and_poses_are_problems() {
+    use matloc_data::summary::plausibility;
+    let base = grid(Path::new("/nowhere"));
+    assert!(plausibility(&base).is_empty(), "{:?}", plausibility(&base));
+    let cases: Vec<(&str, Box<dyn Fn(&mut Frame)>, &str)> = vec![
+        ("tiny focal", Box::new(|f| f.camera.fx = 1e-300), "`fx`"),
+        ("huge focal", Box::new(|f| f.camera.fy = 1e308), "`fy`"),
+        ("pp outside", Box::new(|f| f.camera.cx = 1e4), "`cx`"),
+        ("nan pp", Box::new(|f| f.camera.cy = f64::NAN), "`cy`"),
+        (
+            "huge side",
+            Box::new(|f| f.camera.width = 1_000_000_000),
+            "`width`",
+        ),
+        (
+            // camera_angle_x = π: the focal length from it is ~0.
+            "180° field of view",
+            Box::new(|f| f.camera.fx = 64.0 / (2.0 * (std::f64::consts::PI / 2.0).tan())),
+            "`fx`",
+        ),
+        (
+            "k1 +1e6",
+            Box::new(|f| f.camera.distortion.k1 = 1e6),
+            "`distortion`",
+        ),
+        (
+            "k1 -1e6",
+            Box::new(|f| f.camera.distortion.k1 = -1e6),
+            "`distortion`",
+        ),
+        (
+            "far translation",
+            Box::new(|f| f.cam_from_world.translation.vector.x = 1e308),
+            "pose",
+        ),
+        (
+            "nan translation",
+            Box::new(|f| f.cam_from_world.translation.vector.z = f64::NAN),
+            "not finite",
+        ),
+    ];
+    for (name, break_it, want) in cases {
+        let mut ds = base.clone();
+        break_it(&mut ds.frames[2]);
+        let problems = plausibility(&ds);
+        assert_eq!(problems.len(), 1, "{name}: {problems:?}");
+        let msg = problems[0].to_string();
+        assert!(
+            msg.starts_with("frame 2:") && msg.contains(want),
+            "{name}: {msg}"
+        );
+        // validate reports it too (with the missing files of this fixture).
+        assert!(validate(&ds).iter().any(|p| p.to_string() == msg), "{name}");
+    }
+}
+
+/// A truncated PNG passes the header check and fails the deep one, named.
+#[test]
+fn deep_validation_decodes_every_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = grid(dir.path());
+    for f in &ds.frames {
+        let p = ds.image_path(f);
+        fs::create_dir_all(p.parent().unwrap()).unwrap();
+        write_png_rgb(
+            &Image::new(f.camera.width as usize, f.camera.height as usize, 3),
+            &p,
+        )
+        .unwrap();
+        if let Some(d) = ds.depth_path(f) {
+            fs::create_dir_all(d.parent().unwrap()).unwrap();
+            write_depth_npy(
+                &Image::new(f.camera.width as usize, f.camera.height as usize, 1),
+                &d,
+            )
+            .unwrap();
+        }
+    }
+    assert!(matloc_data::summary::validate_deep(&ds).is_empty());
+    let victim = ds.image_path(&ds.frames[5]);
+    let bytes = fs::read(&victim).unwrap();
+    fs::write(&victim, &bytes[..bytes.len() - 20]).unwrap();
+    assert!(validate(&ds).is_empty(), "the header is intact");
+    let deep = matloc_data::summary::validate_deep(&ds);
+    assert_eq!(deep.len(), 1, "{deep:?}");
+    assert!(
+        deep[0].to_string().contains("5_") || deep[0].to_string().contains("1_1"),
+        "{}",
+        deep[0]
+    );
+}

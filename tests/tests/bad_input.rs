@@ -93,3 +93,22 @@ fn a_view_with_too_few_surface_points_is_named_and_the_map_does_not_load() {
     );
     assert!(LoadedMap::open(&out).is_err(), "an unfinished map loaded");
 }
+
+#[test]
+fn physically_impossible_intrinsics_or_poses_stop_the_build_before_the_map_exists() {
+    let (dir, dataset) = tiny("bad_input_impossible", SynthOutput::default());
+    let out = dir.join("map");
+    let mut focal = dataset.clone();
+    focal.frames[2].camera.fx = 1e-300;
+    let e = build_map(&focal, &out, &MapConfig::default(), &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("frame 2") && e.contains("`fx`"), "{e}");
+    let mut far = dataset;
+    far.frames[7].cam_from_world.translation.vector.x = 1e308;
+    let e = build_map(&far, &out, &MapConfig::default(), &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("frame 7") && e.contains("pose"), "{e}");
+    assert!(!out.exists(), "a map directory was created");
+}

@@ -55,6 +55,17 @@ pub fn build_map_with(
         progress(e);
     };
     tracing::info!(out = %out.display(), frames = dataset.frames.len(), "building map");
+    // Physically impossible intrinsics or poses stop the build before anything is written.
+    let implausible = matloc_data::summary::plausibility(dataset);
+    if !implausible.is_empty() {
+        let shown: Vec<String> = implausible.iter().take(5).map(|p| p.to_string()).collect();
+        return Err(PipelineError::Config(format!(
+            "{} frame problem(s) in the dataset: {}{}",
+            implausible.len(),
+            shown.join("; "),
+            if implausible.len() > 5 { "; …" } else { "" }
+        )));
+    }
     // Every stage at the working resolution; checked (image headers) before the map exists.
     let working = matloc_data::images::working_dataset(dataset, config.images.max_side)?;
     let dataset = &working;
