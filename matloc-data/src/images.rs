@@ -137,7 +137,38 @@ pub fn image_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
     image::image_dimensions(path).map_err(|e| codec_error(path, e))
 }
 
+/// Largest image or depth file read, bytes (a 65 536² float32 map is 16 GiB; nothing a survey
+/// holds comes near 4 GiB).
+pub const MAX_FILE_BYTES: u64 = 4 << 30;
+
+/// A path that should hold a file must be a regular file (following symlinks) of at most
+/// [`MAX_FILE_BYTES`]: a link to `/dev/zero` or a FIFO would otherwise be read until memory
+/// runs out.
+fn regular_file(path: &Path) -> Result<(), ImageLoadError> {
+    let meta = fs::metadata(path).map_err(|e| io_error(path, e))?;
+    if !meta.is_file() {
+        return Err(io_error(
+            path,
+            io::Error::new(io::ErrorKind::InvalidInput, "not a regular file"),
+        ));
+    }
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(io_error(
+            path,
+            io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!(
+                    "{} bytes, more than the {MAX_FILE_BYTES}-byte limit for one image",
+                    meta.len()
+                ),
+            ),
+        ));
+    }
+    Ok(())
+}
+
 fn decode(path: &Path) -> Result<DynamicImage, ImageLoadError> {
+    regular_file(path)?;
     let reader = image::ImageReader::open(path)
         .map_err(|e| io_error(path, e))?
         .with_guessed_format()
@@ -461,6 +492,7 @@ pub fn write_depth_png(
 
 /// Reads a float `.npy` depth map of shape `(H, W)` or `(H, W, 1)`.
 pub fn read_depth_npy(path: &Path) -> Result<Image<f32>, ImageLoadError> {
+    regular_file(path)?;
     let bytes = fs::read(path).map_err(|e| io_error(path, e))?;
     parse_npy(&bytes).map_err(|reason| ImageLoadError::Npy {
         path: path.to_path_buf(),
@@ -663,6 +695,15 @@ pub fn npy_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
         .read_to_end(&mut head)
         .map_err(|e| io_error(path, e))?;
     let header = parse_npy_header(&head).map_err(npy_err)?;
+    if !matches!(
+        header.descr.as_str(),
+        "<f4" | "=f4" | "f4" | "<f8" | "=f8" | "f8"
+    ) {
+        return Err(npy_err(format!(
+            "expected little-endian float32/64 data, got `{}`",
+            header.descr
+        )));
+    }
     match header.shape.as_slice() {
         [h, w] | [h, w, 1] => Ok((
             u32::try_from(*w).map_err(|_| npy_err("width too large".into()))?,

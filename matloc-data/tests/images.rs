@@ -323,3 +323,36 @@ fn working_dataset_names_an_image_whose_aspect_disagrees_with_its_intrinsics() {
         .to_string();
     assert!(e.contains("img.png"), "{e}");
 }
+
+#[test]
+fn depth_dtype_is_checked_from_the_header_and_special_files_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    // An int32 depth map: refused by name by the header check, not only by a full read.
+    let p = dir.path().join("d.npy");
+    let mut header = String::from("{'descr': '<i4', 'fortran_order': False, 'shape': (2, 3), }");
+    header.push_str(&" ".repeat((64 - (10 + header.len() + 1) % 64) % 64));
+    header.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    bytes.extend_from_slice(&[0u8; 24]);
+    fs::write(&p, &bytes).unwrap();
+    for e in [
+        matloc_data::images::depth_size(&p).unwrap_err().to_string(),
+        read_depth_npy(&p).unwrap_err().to_string(),
+    ] {
+        assert!(e.contains("<i4") && e.contains("d.npy"), "{e}");
+    }
+    // A depth "file" that is a link to /dev/zero is not read until memory runs out.
+    #[cfg(unix)]
+    {
+        let link = dir.path().join("zero.npy");
+        std::os::unix::fs::symlink("/dev/zero", &link).unwrap();
+        let e = read_depth_npy(&link).unwrap_err().to_string();
+        assert!(e.contains("not a regular file"), "{e}");
+        let link = dir.path().join("zero.png");
+        std::os::unix::fs::symlink("/dev/zero", &link).unwrap();
+        let e = load_rgb(&link).unwrap_err().to_string();
+        assert!(e.contains("not a regular file"), "{e}");
+    }
+}
