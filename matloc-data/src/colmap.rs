@@ -815,7 +815,13 @@ pub fn parse_images_text(
                 source,
             })?;
         let mut points2d = Vec::new();
-        if i < lines.len() {
+        // Some writers leave out the POINTS2D lines: a line that cannot be one (its tokens
+        // are not (x, y, id) triples ending in an integer id) is the next image's, not ours.
+        let looks_like_points = |text: &str| {
+            let tokens: Vec<&str> = text.split_whitespace().collect();
+            tokens.len() % 3 == 0 && tokens.last().is_none_or(|t| t.parse::<i64>().is_ok())
+        };
+        if i < lines.len() && looks_like_points(&lines[i].1) {
             let (pline, ptext) = &lines[i];
             i += 1;
             let mut pt = Tokens::new(path, *pline, ptext);

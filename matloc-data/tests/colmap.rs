@@ -434,3 +434,24 @@ fn names_with_spaces_and_short_params() {
     cam.params.truncate(2);
     assert!(cam.to_camera().is_err());
 }
+
+/// `images.txt` written without the POINTS2D lines (some exporters do) reads as images
+/// without keypoints, with or without the blank line between them.
+#[test]
+fn images_text_without_points2d_lines() {
+    let compact =
+        "1 1 0 0 0 0 0 -2.0 1 a.png\n2 1 0 0 0 1 0 -2.0 1 b.png\n3 1 0 0 0 2 0 -2.0 1 img 3.png\n";
+    let images =
+        matloc_data::colmap::parse_images_text(compact.as_bytes(), Path::new("images.txt"))
+            .unwrap();
+    assert_eq!(images.len(), 3);
+    assert_eq!(images[&3].name, "img 3.png");
+    assert!(images.values().all(|i| i.points2d.is_empty()));
+    // Mixed: one image with keypoints, one without.
+    let mixed = "1 1 0 0 0 0 0 -2.0 1 a.png\n10.5 20.5 -1 11 12 7\n2 1 0 0 0 1 0 -2.0 1 b.png\n";
+    let images =
+        matloc_data::colmap::parse_images_text(mixed.as_bytes(), Path::new("images.txt")).unwrap();
+    assert_eq!(images[&1].points2d.len(), 2);
+    assert_eq!(images[&1].points2d[1].point3d_id, Some(7));
+    assert!(images[&2].points2d.is_empty());
+}
