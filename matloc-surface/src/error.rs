@@ -43,6 +43,25 @@ pub enum SurfaceError {
         /// The configured minimum.
         needed: usize,
     },
+    /// A frame's depth file holds no usable value.
+    #[error(
+        "frame {frame}: depth map {path} has no finite positive value ({nan} NaN or infinite, \
+         {negative} negative, {zero} zero of {total})"
+    )]
+    BadDepth {
+        /// Frame index in the dataset.
+        frame: usize,
+        /// The depth file.
+        path: PathBuf,
+        /// Non-finite values.
+        nan: usize,
+        /// Negative values.
+        negative: usize,
+        /// Zero values (no surface).
+        zero: usize,
+        /// All values.
+        total: usize,
+    },
     /// A setting is out of range.
     #[error("surface config: `{field}` {reason}")]
     InvalidConfig {

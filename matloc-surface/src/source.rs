@@ -162,6 +162,17 @@ impl FrameSurfaces {
                 SurfaceChoice::Auto | SurfaceChoice::Depth
             );
         if use_file && let Some(d) = load_frame_depth(dataset, frame, 1)? {
+            let data = d.data();
+            if !data.iter().any(|v| v.is_finite() && *v > 0.0) {
+                return Err(SurfaceError::BadDepth {
+                    frame: index,
+                    path: dataset.depth_path(frame).unwrap_or_default(),
+                    nan: data.iter().filter(|v| !v.is_finite()).count(),
+                    negative: data.iter().filter(|v| **v < 0.0).count(),
+                    zero: data.iter().filter(|v| **v == 0.0).count(),
+                    total: data.len(),
+                });
+            }
             return Ok(d);
         }
         let Some(points) = &self.points else {

@@ -291,3 +291,29 @@ fn colmap_track_naming_a_missing_image_is_an_error() {
     let e = read_dataset(&dir).unwrap_err().to_string();
     assert!(e.contains("points3D.txt") && e.contains("9999"), "{e}");
 }
+
+#[test]
+fn a_depth_map_without_a_usable_value_is_named() {
+    let f = fixture();
+    let dir = f.dir.join("bad_depth");
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut ds = f.dataset.clone();
+    let i = ds.split_indices(Split::Train)[1];
+    let path = dir.join("nan.npy");
+    let (w, h) = (
+        ds.frames[i].camera.width as usize,
+        ds.frames[i].camera.height as usize,
+    );
+    let mut img = Image::<f32>::new(w, h, 1);
+    img.data_mut().fill(f32::NAN);
+    img.data_mut()[0] = -1.0;
+    // Written by hand: the project's writer refuses such values.
+    std::fs::write(&path, matloc_data::images::encode_npy_f32(w, h, img.data())).unwrap();
+    ds.frames[i].depth_path = Some(path);
+    let s = FrameSurfaces::prepare(&ds, &[i], &SurfaceConfig::default(), &|_, _, _| {}).unwrap();
+    let e = s.depth(&ds, i).unwrap_err().to_string();
+    assert!(
+        e.contains("nan.npy") && e.contains("NaN") && e.contains("1 negative"),
+        "{e}"
+    );
+}
