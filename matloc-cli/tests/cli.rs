@@ -126,3 +126,193 @@ fn a_closed_or_full_stdout_is_handled_without_a_panic() {
         assert!(err.contains("stdout") && !err.contains("panicked"), "{err}");
     }
 }
+
+/// A map with no blocks whose stages all completed and wrote their files (nothing trained).
+fn hand_made_map(root: &Path) {
+    use matloc_pipeline::map::layout::{required_stages, stage_files};
+    let mut map = matloc_pipeline::MapDir::create_or_resume(root, serde_json::json!({})).unwrap();
+    for s in required_stages(0) {
+        for f in stage_files(&s) {
+            map.write_file(&f, format!("{{\"file\": \"{f}\"}}").as_bytes())
+                .unwrap();
+        }
+        map.complete_stage(&s, 0.5).unwrap();
+    }
+}
+
+/// Runs `map info` and `map verify` on `root`: (info, verify).
+fn info_and_verify(root: &Path) -> (std::process::Output, std::process::Output) {
+    let root = root.to_str().unwrap();
+    (
+        matloc(&["map", "info", root]),
+        matloc(&["map", "verify", root]),
+    )
+}
+
+#[test]
+fn map_info_and_verify_fail_on_a_corrupted_file() {
+    let dir = tempfile::tempdir().unwrap();
+    hand_made_map(dir.path());
+    let (info, verify) = info_and_verify(dir.path());
+    assert!(info.status.success(), "{}", text(&info));
+    let out = String::from_utf8_lossy(&info.stdout);
+    assert!(
+        out.contains("checksums ok") && out.contains("status       complete"),
+        "{out}"
+    );
+    assert!(verify.status.success(), "{}", text(&verify));
+    assert!(
+        text(&verify).contains(": ok (4 files, 3 stages)"),
+        "{}",
+        text(&verify)
+    );
+
+    // Same size, other content.
+    let file = dir.path().join("partition.json");
+    let mut bytes = std::fs::read(&file).unwrap();
+    bytes[2] ^= 1;
+    std::fs::write(&file, bytes).unwrap();
+    let (info, verify) = info_and_verify(dir.path());
+    assert_eq!(info.status.code(), Some(1), "{}", text(&info));
+    let out = String::from_utf8_lossy(&info.stdout);
+    assert!(out.contains("checksums FAILED"), "{out}");
+    assert!(out.contains("stages:"), "the summary is printed: {out}");
+    let err = String::from_utf8_lossy(&info.stderr);
+    assert!(err.contains("partition.json: checksum mismatch"), "{err}");
+    assert_eq!(verify.status.code(), Some(1), "{}", text(&verify));
+    let lines: Vec<String> = String::from_utf8_lossy(&verify.stdout)
+        .lines()
+        .map(String::from)
+        .collect();
+    assert_eq!(lines.len(), 1, "{lines:?}");
+    assert!(
+        lines[0].contains("partition.json: checksum mismatch"),
+        "{lines:?}"
+    );
+
+    // A missing file: the summary still prints, both fail.
+    std::fs::remove_file(dir.path().join("confidence.json")).unwrap();
+    let (info, verify) = info_and_verify(dir.path());
+    assert_eq!(info.status.code(), Some(1), "{}", text(&info));
+    assert!(String::from_utf8_lossy(&info.stdout).contains("stages:"));
+    assert!(text(&info).contains("confidence.json"), "{}", text(&info));
+    assert_eq!(verify.status.code(), Some(1));
+    assert_eq!(String::from_utf8_lossy(&verify.stdout).lines().count(), 2);
+}
+
+/// A manifest written by hand.
+fn write_manifest(root: &Path, manifest: &serde_json::Value) {
+    std::fs::create_dir_all(root).unwrap();
+    std::fs::write(root.join("manifest.json"), manifest.to_string()).unwrap();
+}
+
+#[test]
+fn a_manifest_claiming_every_stage_without_files_fails() {
+    let dir = tempfile::tempdir().unwrap();
+    let stages: Vec<serde_json::Value> = ["partition", "place", "calibration"]
+        .iter()
+        .map(|s| serde_json::json!({"name": s, "seconds": 1.0}))
+        .collect();
+    write_manifest(
+        dir.path(),
+        &serde_json::json!({
+            "format": "matloc-map",
+            "version": 1,
+            "created_by": "hand",
+            "config": {},
+            "stages": stages,
+            "files": {},
+        }),
+    );
+    let (info, verify) = info_and_verify(dir.path());
+    assert_eq!(info.status.code(), Some(1), "{}", text(&info));
+    let out = String::from_utf8_lossy(&info.stdout);
+    assert!(!out.contains("status       complete"), "{out}");
+    assert!(
+        out.contains("incomplete, 4 files of completed stages not listed"),
+        "{out}"
+    );
+    let err = String::from_utf8_lossy(&info.stderr);
+    assert!(
+        err.contains("partition.json: written by stage partition"),
+        "{err}"
+    );
+    assert_eq!(verify.status.code(), Some(1));
+    let out = String::from_utf8_lossy(&verify.stdout);
+    assert_eq!(out.lines().count(), 4, "{out}");
+    for f in [
+        "partition.json",
+        "place/place.json",
+        "place/place.safetensors",
+        "confidence.json",
+    ] {
+        assert!(out.contains(f), "{f}: {out}");
+    }
+
+    let o = matloc(&["map", "info", dir.path().to_str().unwrap(), "--json"]);
+    assert_eq!(o.status.code(), Some(1));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("valid JSON");
+    assert_eq!(v["problems"].as_array().unwrap().len(), 4, "{v}");
+}
+
+#[test]
+fn a_manifest_field_of_the_wrong_type_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    write_manifest(
+        dir.path(),
+        &serde_json::json!({
+            "format": "matloc-map",
+            "version": "1",
+            "created_by": "hand",
+            "config": {},
+        }),
+    );
+    let (info, verify) = info_and_verify(dir.path());
+    for o in [&info, &verify] {
+        assert_eq!(o.status.code(), Some(1), "{}", text(o));
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains("`version`: expected an integer, found a string"),
+            "{err}"
+        );
+    }
+}
+
+#[test]
+fn map_config_default_parses_back_and_unknown_keys_are_named() {
+    let o = matloc(&["map", "config", "--print-default"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let c: matloc_pipeline::build::MapConfig =
+        serde_json::from_slice(&o.stdout).expect("the default config parses");
+    assert_eq!(c, matloc_pipeline::build::MapConfig::default());
+
+    let dir = tempfile::tempdir().unwrap();
+    for (config, key) in [
+        (serde_json::json!({"partiton": {}}), "partiton"),
+        (
+            serde_json::json!({"partition": {"voxel_size": 2.0, "voxel_sise": 2.0}}),
+            "voxel_sise",
+        ),
+        (
+            serde_json::json!({"localize": {"pnp": {"ransac": {"max_iters": 5}}}}),
+            "max_iters",
+        ),
+    ] {
+        let path = dir.path().join("config.json");
+        std::fs::write(&path, config.to_string()).unwrap();
+        let o = matloc(&[
+            "map",
+            "build",
+            "--data",
+            dir.path().join("no-data").to_str().unwrap(),
+            "--out",
+            dir.path().join("map").to_str().unwrap(),
+            "--config",
+            path.to_str().unwrap(),
+        ]);
+        assert!(!o.status.success());
+        let t = text(&o);
+        assert!(t.contains(&format!("unknown field `{key}`")), "{t}");
+        assert!(!dir.path().join("map").exists());
+    }
+}

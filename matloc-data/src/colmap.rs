@@ -819,7 +819,7 @@ pub fn parse_images_text(
         // are not (x, y, id) triples ending in an integer id) is the next image's, not ours.
         let looks_like_points = |text: &str| {
             let tokens: Vec<&str> = text.split_whitespace().collect();
-            tokens.len() % 3 == 0 && tokens.last().is_none_or(|t| t.parse::<i64>().is_ok())
+            tokens.len().is_multiple_of(3) && tokens.last().is_none_or(|t| t.parse::<i64>().is_ok())
         };
         if i < lines.len() && looks_like_points(&lines[i].1) {
             let (pline, ptext) = &lines[i];

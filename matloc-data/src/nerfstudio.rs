@@ -625,6 +625,17 @@ impl Ctx<'_> {
             None => match get("camera_angle_x") {
                 Some((v, at)) => {
                     let angle = self.number(v, at, "camera_angle_x")?;
+                    // Blender's horizontal field of view in radians: blame it, not the focal
+                    // length derived from it.
+                    if !(angle.is_finite() && angle > 0.0 && angle < std::f64::consts::PI) {
+                        return Err(self.invalid(
+                            at,
+                            "camera_angle_x",
+                            &format!(
+                                "{angle} is not a field of view in radians (expected 0 < angle < π)"
+                            ),
+                        ));
+                    }
                     0.5 * width as f64 / (0.5 * angle).tan()
                 }
                 None => return Err(self.missing(Some(frame), "fl_x")),

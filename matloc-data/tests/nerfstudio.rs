@@ -524,3 +524,27 @@ mod random_round_trip {
         }
     }
 }
+
+/// A Blender `camera_angle_x` that is no field of view is blamed by name (it used to surface
+/// as a bad `fx`).
+#[test]
+fn camera_angle_x_out_of_range_is_named() {
+    for angle in ["3.2", "0", "-1", "3.141592653589793"] {
+        let text = format!(
+            r#"{{"camera_angle_x": {angle}, "w": 8, "h": 6, "frames": [{{"file_path": "a.png",
+               "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}}]}}"#
+        );
+        let e = matloc_data::nerfstudio::parse_transforms(
+            text.as_bytes(),
+            Path::new("transforms.json"),
+            Path::new("."),
+            Split::Train,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("camera_angle_x") && !e.contains("fx"),
+            "{angle}: {e}"
+        );
+    }
+}

@@ -190,7 +190,8 @@ fn impossible_intrinsics_and_poses_are_problems() {
     use matloc_data::summary::plausibility;
     let base = grid(Path::new("/nowhere"));
     assert!(plausibility(&base).is_empty(), "{:?}", plausibility(&base));
-    let cases: Vec<(&str, Box<dyn Fn(&mut Frame)>, &str)> = vec![
+    type Breaker = Box<dyn Fn(&mut Frame)>;
+    let cases: Vec<(&str, Breaker, &str)> = vec![
         ("tiny focal", Box::new(|f| f.camera.fx = 1e-300), "`fx`"),
         ("huge focal", Box::new(|f| f.camera.fy = 1e308), "`fy`"),
         ("pp outside", Box::new(|f| f.camera.cx = 1e4), "`cx`"),

@@ -84,7 +84,7 @@ pub enum EncoderError {
 
 /// Network shape.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct EncoderConfig {
     /// Channels after the stem.
     pub width: usize,
@@ -206,7 +206,7 @@ impl Net {
 
 /// Photometric augmentation applied to training images.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct JitterConfig {
     /// Brightness gain drawn from `1 ± brightness`.
     pub brightness: f32,
@@ -231,7 +231,7 @@ impl Default for JitterConfig {
 
 /// Training settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct EncoderTrainConfig {
     /// Network shape.
     pub net: EncoderConfig,
@@ -267,7 +267,7 @@ pub struct EncoderTrainConfig {
 /// head step costs a few matrix products instead of a full-image convolution pass, so it sees
 /// many more cells per second.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct HeadPhaseConfig {
     /// Head-only steps (0: no second phase).
     pub steps: usize,

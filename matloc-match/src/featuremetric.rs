@@ -40,7 +40,7 @@ use serde::{Deserialize, Serialize};
 
 /// Settings of [`refine_pose`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct FeatureMetricConfig {
     /// Blur radii (Gaussian sigma, in grid cells) of the levels, coarse to fine; `0` is the
     /// unblurred map. Each level runs up to `iterations` LM steps from the previous one's pose.

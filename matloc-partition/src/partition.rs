@@ -26,6 +26,7 @@ pub enum Method {
 
 /// Settings of [`PoseAwarePartitioner`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PoseAwareConfig {
     /// Poses per block (the paper uses 150); the block count is `ceil(N / target_size)`.
     pub target_size: usize,

@@ -30,6 +30,7 @@ pub enum SkyPolicy {
 
 /// How rays and points are subsampled.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SampleConfig {
     /// Take every `pixel_stride`-th pixel in x and y.
     pub pixel_stride: u32,

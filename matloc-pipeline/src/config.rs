@@ -14,7 +14,7 @@ use crate::localizer::options::LocalizeOptions;
 /// Everything that defines a map build. Stored in the manifest; resuming a build requires the
 /// same config.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct MapConfig {
     /// Working resolution of every stage.
     pub images: ImageConfig,
@@ -55,7 +55,7 @@ pub struct ImageConfig {
 
 /// Sub-NeRF training settings of a map build.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct NerfStageConfig {
     /// Training steps per block.
     pub steps: u64,
@@ -86,7 +86,7 @@ impl Default for NerfStageConfig {
 
 /// Ground-truth pair generation per block.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct PairStageConfig {
     /// Training views per block used for pairs (evenly spaced; held-out views excluded).
     pub views_per_block: usize,
@@ -113,7 +113,7 @@ impl Default for PairStageConfig {
 
 /// Query encoder training per block.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct EncoderStageConfig {
     /// Training views per block (evenly spaced; held-out views excluded).
     pub views_per_block: usize,
@@ -141,7 +141,7 @@ impl Default for EncoderStageConfig {
 
 /// Feature selection per block.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SelectStageConfig {
     /// Dims to select (N_s); at least the field's 47 keeps every dim without running the
     /// selector.
@@ -178,6 +178,7 @@ impl Default for SelectStageConfig {
 
 /// What a subset is scored by on the selection views.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub enum RenderScore {
     /// F1 of the windowed MNN matches: a match is correct when its 3D point projects within
     /// `tol_px` of its query pixel at the true pose; recall is over the render's valid points.
@@ -193,7 +194,7 @@ pub enum RenderScore {
 
 /// Settings of [`select_on_renders`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct RenderSelectConfig {
     /// Greedy forward search and swap refinement.
     pub search: GreedySearch,
@@ -224,7 +225,7 @@ impl Default for RenderSelectConfig {
 
 /// Pose groups and the place classifier.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct PlaceStageConfig {
     /// Two-stage K-means settings.
     pub groups: GroupConfig,
@@ -278,7 +279,7 @@ impl Default for PlaceStageConfig {
 /// NeRF-rendered training views for the place classifier: the survey gives ~2 images per pose
 /// group, and test queries fall between survey poses.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct RenderedViewsConfig {
     /// Views rendered per training view (0 = off); one raised the top-1 group accuracy, more
     /// gained nothing (docs/DECISIONS.md).
@@ -308,7 +309,7 @@ impl Default for RenderedViewsConfig {
 
 /// Held-out views and confidence calibration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct CalibrationConfig {
     /// Every n-th training view of a block is held out of pairs and encoder (0 = none).
     pub holdout_every: usize,
@@ -345,5 +346,113 @@ impl Default for CalibrationConfig {
             rotation_bound_margin: 2.5,
             min_rotation_bound_deg: 6.0,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use serde_json::{Value, json};
+
+    use super::*;
+
+    /// Paths of every JSON object in the default config that a config struct serialises to
+    /// (externally tagged enum variants, one upper-case key, are left out).
+    fn struct_paths(v: &Value, path: &mut Vec<String>, out: &mut Vec<Vec<String>>) {
+        let Value::Object(m) = v else { return };
+        let variant = m.len() == 1 && m.keys().all(|k| k.starts_with(char::is_uppercase));
+        if !variant {
+            out.push(path.clone());
+        }
+        for (k, child) in m {
+            path.push(k.clone());
+            struct_paths(child, path, out);
+            path.pop();
+        }
+    }
+
+    fn at<'a>(v: &'a mut Value, path: &[String]) -> &'a mut Value {
+        path.iter().fold(v, |v, k| &mut v[k.as_str()])
+    }
+
+    fn default_paths() -> (Value, Vec<Vec<String>>) {
+        let value = serde_json::to_value(MapConfig::default()).unwrap();
+        let mut paths = Vec::new();
+        struct_paths(&value, &mut Vec::new(), &mut paths);
+        (value, paths)
+    }
+
+    /// Every struct reachable from the config takes its defaults for missing fields: an empty
+    /// object anywhere parses.
+    #[test]
+    fn an_empty_section_at_any_depth_parses() {
+        let (value, paths) = default_paths();
+        assert!(paths.len() > 20, "{paths:?}");
+        // Enum values: an empty object names no variant.
+        let enums = ["localize.pnp.refine.loss", "select.renders.score.MatchF1"];
+        let failed: Vec<String> = paths
+            .iter()
+            .filter(|path| !enums.contains(&path.join(".").as_str()))
+            .filter_map(|path| {
+                let mut v = value.clone();
+                *at(&mut v, path) = json!({});
+                let e = serde_json::from_value::<MapConfig>(v).err()?;
+                Some(format!("{}: {e}", path.join(".")))
+            })
+            .collect();
+        assert!(failed.is_empty(), "{failed:#?}");
+    }
+
+    /// An unknown key in any config struct is an error naming it.
+    #[test]
+    fn an_unknown_key_at_any_depth_is_named() {
+        let (value, paths) = default_paths();
+        let failed: Vec<String> = paths
+            .iter()
+            .filter_map(|path| {
+                let mut v = value.clone();
+                at(&mut v, path)["no_such_key"] = json!(1);
+                match serde_json::from_value::<MapConfig>(v) {
+                    Ok(_) => Some(format!("{}: accepted", path.join("."))),
+                    Err(e) if e.to_string().contains("no_such_key") => None,
+                    Err(e) => Some(format!("{}: {e}", path.join("."))),
+                }
+            })
+            .collect();
+        assert!(failed.is_empty(), "{failed:#?}");
+    }
+
+    #[test]
+    fn partial_sections_keep_the_other_defaults() {
+        let d = MapConfig::default();
+        let c: MapConfig = serde_json::from_value(json!({
+            "partition": {"voxel_size": 2.0},
+            "encoder": {"train": {"head_phase": {"images": 3}}},
+            "localize": {"pnp": {}, "featuremetric": {}},
+            "place": {"train": {"augment": {}}},
+        }))
+        .unwrap();
+        assert_eq!(c.partition.voxel_size, 2.0);
+        assert_eq!(c.partition.target_size, d.partition.target_size);
+        assert_eq!(c.encoder.train.head_phase.images, 3);
+        assert_eq!(c.encoder.views_per_block, d.encoder.views_per_block);
+        assert_eq!(c.localize, d.localize);
+        assert_eq!(c.place, d.place);
+        assert_eq!(c.nerf, d.nerf);
+    }
+
+    /// `nerf.model_overrides` is free-form.
+    #[test]
+    fn model_overrides_take_any_keys() {
+        let c: MapConfig =
+            serde_json::from_value(json!({"nerf": {"model_overrides": {"anything": {"x": 1}}}}))
+                .unwrap();
+        assert_eq!(c.nerf.model_overrides, json!({"anything": {"x": 1}}));
+    }
+
+    #[test]
+    fn the_default_round_trips() {
+        let d = MapConfig::default();
+        let text = serde_json::to_string_pretty(&d).unwrap();
+        assert_eq!(serde_json::from_str::<MapConfig>(&text).unwrap(), d);
     }
 }

@@ -104,7 +104,7 @@ pub enum PerturbKind {
 /// Coarse-pose error model: the camera centre moves by `δt` (world frame) and the camera rotates
 /// by `δR` about its own centre (`R' = δR · R` in `cam_from_world`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct Perturbation {
     /// Distribution shape.
     pub kind: PerturbKind,

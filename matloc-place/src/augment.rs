@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 
 /// Augmentation ranges.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct AugmentConfig {
     /// Smallest crop side relative to the full image (1 = no cropping).
     pub min_crop: f64,

@@ -27,7 +27,7 @@ use crate::error::PlaceError;
 
 /// Settings of [`PoseGroups::build`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct GroupConfig {
     /// Spatial radius as a multiple of the median viewing distance.
     pub radius_factor: f64,

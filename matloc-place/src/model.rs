@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 
 /// Shape of the networks.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct NetConfig {
     /// Input width, pixels (a multiple of 16: four 2× poolings).
     pub input_width: usize,
@@ -181,7 +181,7 @@ impl ArcFaceNet {
 
 /// ArcFace settings: logits `s · cos(θ_y + m)` for the true class, `s · cos θ_j` otherwise.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct ArcFaceConfig {
     /// Scale `s`.
     pub scale: f32,

@@ -66,7 +66,7 @@ pub enum PlaceMethod {
 
 /// Training settings.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct TrainConfig {
     /// Network shape.
     pub net: NetConfig,

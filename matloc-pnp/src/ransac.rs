@@ -209,7 +209,7 @@ pub enum SamplerKind {
 
 /// RANSAC options (plain data: `Default` + serde).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct RansacOptions {
     /// Inlier threshold on the reprojection error, pixels.
     pub max_error_px: f64,

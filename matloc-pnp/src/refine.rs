@@ -16,7 +16,7 @@ use crate::model::{PoseMatrix, exp_so3};
 
 /// Robust loss `ρ(s)` applied to the squared reprojection error `s` (pixels²).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
+#[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
 pub enum RobustLoss {
     /// Plain least squares, `ρ(s) = s`.
     Trivial,
@@ -107,7 +107,7 @@ impl RobustLoss {
 
 /// Options of the Levenberg–Marquardt refinement.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct RefineOptions {
     /// Most LM iterations (linear solves), accepted or rejected.
     pub max_iterations: usize,

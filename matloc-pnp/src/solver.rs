@@ -114,7 +114,7 @@ pub trait PoseSolver {
 
 /// Options of [`LoRansacPnp`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct PnpOptions {
     /// Robust estimation.
     pub ransac: RansacOptions,

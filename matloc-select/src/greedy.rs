@@ -247,7 +247,7 @@ impl MatchProblem {
 /// closer-to-use criterion (e.g. matching whole renders in an image window, or PnP) plug it in
 /// here.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct GreedySearch {
     /// After the greedy pass, try replacing each selected dim by each unselected one and keep
     /// improvements, until no swap helps or `max_swap_rounds` passes are done.

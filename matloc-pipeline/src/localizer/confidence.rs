@@ -57,6 +57,7 @@ pub enum CalibrationError {
 
 /// Logistic model over [`Evidence`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ConfidenceModel {
     /// Weights for (bias, ln(1+inliers), inlier ratio, ln(1+matches)).
     pub weights: [f64; 4],

@@ -9,7 +9,7 @@ use crate::localizer::confidence::ConfidenceModel;
 
 /// Localizer settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct LocalizeOptions {
     /// Place hypotheses to try, best first.
     pub top_k: usize,

@@ -672,6 +672,56 @@ mod tests {
     }
 
     #[test]
+    fn a_field_of_the_wrong_type_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut v = serde_json::to_value(Manifest::new(serde_json::json!({}))).unwrap();
+        v["version"] = serde_json::json!("1");
+        fs::write(dir.path().join(MANIFEST_FILE), v.to_string()).unwrap();
+        let e = MapDir::open(dir.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("`version`: expected an integer, found a string"),
+            "{e}"
+        );
+        v["version"] = serde_json::json!(1);
+        v["files"] = serde_json::json!([]);
+        fs::write(dir.path().join(MANIFEST_FILE), v.to_string()).unwrap();
+        let e = MapDir::open(dir.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("`files`: expected an object, found an array"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn completed_stages_need_their_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut map = MapDir::create_or_resume(dir.path(), serde_json::json!({})).unwrap();
+        let problems = |map: &MapDir| -> Vec<String> {
+            map.problems().iter().map(|p| p.to_string()).collect()
+        };
+        assert_eq!(
+            problems(&map),
+            ["stage partition has not completed (the map is incomplete)"]
+        );
+        for s in required_stages(0) {
+            map.complete_stage(&s, 0.0).unwrap();
+        }
+        let p = problems(&map);
+        assert_eq!(p.len(), 4, "{p:?}");
+        assert!(p[0].starts_with("partition.json: written by stage partition"));
+        for s in required_stages(0) {
+            for f in stage_files(&s) {
+                map.write_file(&f, b"x").unwrap();
+            }
+        }
+        assert!(problems(&map).is_empty());
+        fs::write(dir.path().join("confidence.json"), b"y").unwrap();
+        let p = problems(&map);
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert!(p[0].contains("checksum mismatch"), "{p:?}");
+    }
+
+    #[test]
     fn names_must_stay_inside_the_map() {
         for bad in [
             "",
