@@ -10,6 +10,9 @@ use matloc_data::colmap::{
 };
 use matloc_data::images::{encode_npy_f32, parse_npy};
 use matloc_data::nerfstudio::parse_transforms;
+use matloc_data::ply::{parse_ply, ply_bytes};
+use matloc_data::torch_pt::parse_pt;
+use nalgebra::Point3;
 use proptest::prelude::*;
 
 fn fixture_bytes(rel: &str) -> Vec<u8> {
@@ -31,6 +34,9 @@ struct Corpus {
     images_bin: Vec<u8>,
     points_bin: Vec<u8>,
     npy: Vec<u8>,
+    ply_ascii: Vec<u8>,
+    ply_binary: Vec<u8>,
+    pt: Vec<u8>,
 }
 
 fn corpus() -> &'static Corpus {
@@ -55,6 +61,17 @@ fn corpus() -> &'static Corpus {
             images_bin: bin("images.bin"),
             points_bin: bin("points3D.bin"),
             npy: encode_npy_f32(3, 2, &[0.0, 1.0, 2.0, 3.0, 4.0, 5.0]),
+            ply_ascii: b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\n\
+                         property float y\nproperty float z\nproperty uchar red\n\
+                         property uchar green\nproperty uchar blue\nelement face 1\n\
+                         property list uchar int vertex_indices\nend_header\n\
+                         1 2 3 4 5 6\n-1 0.5 2e1 7 8 9\n3 0 1 1\n"
+                .to_vec(),
+            ply_binary: ply_bytes(
+                &[Point3::new(1.0, 2.0, 3.0), Point3::new(-4.0, 5.5, 6.25)],
+                None,
+            ),
+            pt: fixture_bytes("torch/metadata.pt"),
         }
     })
 }
@@ -101,6 +118,8 @@ fn run_all(bytes: &[u8]) {
     let _ = parse_images_binary(bytes, p);
     let _ = parse_points3d_binary(bytes, p);
     let _ = parse_npy(bytes);
+    let _ = parse_ply(bytes, p);
+    let _ = parse_pt(bytes, p);
 }
 
 proptest! {
@@ -160,5 +179,18 @@ proptest! {
     #[test]
     fn mutated_npy_never_panics(e in edits()) {
         let _ = parse_npy(&mutate(corpus().npy.clone(), &e));
+    }
+
+    #[test]
+    fn mutated_ply_and_torch_files_never_panic(e in edits(), cut in any::<prop::sample::Index>()) {
+        let c = corpus();
+        let p = Path::new("fuzz");
+        let _ = parse_ply(&mutate(c.ply_ascii.clone(), &e), p);
+        let _ = parse_ply(&mutate(c.ply_binary.clone(), &e), p);
+        let _ = parse_pt(&mutate(c.pt.clone(), &e), p);
+        // Every strict prefix of the binary PLY and of the torch archive is an error.
+        prop_assert!(parse_ply(&c.ply_binary[..cut.index(c.ply_binary.len())], p).is_err());
+        prop_assert!(parse_pt(&c.pt[..cut.index(c.pt.len())], p).is_err());
+        let _ = parse_ply(&c.ply_ascii[..cut.index(c.ply_ascii.len())], p);
     }
 }
