@@ -89,7 +89,7 @@ fn surface_samples(
 ) -> Result<Vec<PoseSamples>, PipelineError> {
     let surfaces =
         FrameSurfaces::prepare(dataset, train, &config.surface, &|phase, done, total| {
-            if done == total || done % 64 == 0 {
+            if done == total || done % (total / 10).max(1) == 0 {
                 tracing::info!(phase, done, total, "triangulating the surface");
             }
         })?;
