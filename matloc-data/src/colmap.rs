@@ -484,6 +484,16 @@ pub fn read_colmap(path: &Path) -> Result<ColmapModel, ColmapError> {
     read_colmap_dir(&dir, format)
 }
 
+/// Reads one `points3D.txt` / `points3D.bin` file (format by extension).
+pub fn read_points3d_file(path: &Path) -> Result<BTreeMap<u64, Point3D>, ColmapError> {
+    let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
+    if path.extension().is_some_and(|e| e == "bin") {
+        parse_points3d_binary(&bytes, path)
+    } else {
+        parse_points3d_text(&bytes, path)
+    }
+}
+
 /// Reads a model directory in the given format.
 pub fn read_colmap_dir(dir: &Path, format: ColmapFormat) -> Result<ColmapModel, ColmapError> {
     let ext = format.ext();

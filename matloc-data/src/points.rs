@@ -1,11 +1,9 @@
 //! A dataset's sparse point cloud ([`PointSource`]) read into one type: positions, and for
 //! COLMAP models the frames that observed each point (its track), indexed by frame.
 
-use std::path::Path;
-
 use nalgebra::Point3;
 
-use crate::colmap::{ColmapError, parse_points3d_binary, parse_points3d_text};
+use crate::colmap::{ColmapError, read_points3d_file};
 use crate::dataset::{Dataset, PointSource};
 use crate::error::DataError;
 use crate::ply::read_ply;
@@ -47,7 +45,7 @@ pub fn read_points(dataset: &Dataset) -> Result<Option<SparsePoints>, DataError>
             path,
             frame_of_image,
         }) => {
-            let points = read_colmap_points(path)?;
+            let points = read_points3d_file(path)?;
             let mut by_frame = vec![Vec::new(); dataset.frames.len()];
             let mut xyz = Vec::with_capacity(points.len());
             for p in points.values() {
@@ -81,19 +79,5 @@ pub fn read_points(dataset: &Dataset) -> Result<Option<SparsePoints>, DataError>
                 by_frame: Some(by_frame),
             }))
         }
-    }
-}
-
-fn read_colmap_points(
-    path: &Path,
-) -> Result<std::collections::BTreeMap<u64, crate::colmap::Point3D>, ColmapError> {
-    let bytes = std::fs::read(path).map_err(|source| ColmapError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    if path.extension().is_some_and(|e| e == "bin") {
-        parse_points3d_binary(&bytes, path)
-    } else {
-        parse_points3d_text(&bytes, path)
     }
 }

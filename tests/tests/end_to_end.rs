@@ -114,6 +114,41 @@ fn built() -> &'static Built {
     })
 }
 
+/// The pose MatLoc finds for test view `f` when the query's features are block 0's NeRF
+/// features rendered at the true pose (a perfect encoder): hypotheses from `place`, the
+/// uncalibrated prior confidence, matching on `match_dims` of the block's dims.
+fn perfect_encoder_pose(
+    map: &LoadedMap,
+    place: &dyn PlacePredictor,
+    image: &Image<f32>,
+    camera: matloc_core::Camera,
+    f: &matloc_data::Frame,
+    match_dims: Option<Vec<usize>>,
+) -> Option<Pose> {
+    let blk = &map.blocks.0[0];
+    let oracle = RenderedQueryEncoder {
+        renderer: blk.renderer.as_ref(),
+        camera,
+        cam_from_world: f.cam_from_world,
+        dims: (0..47).collect(),
+        stride: 4,
+    };
+    let solver = LoRansacPnp::default();
+    let localizer = Localizer {
+        place,
+        blocks: vec![LocalizerBlock {
+            renderer: blk.renderer.as_ref(),
+            encoder: &oracle,
+            matcher: blk.matcher.as_ref(),
+            dims: blk.dims.clone(),
+            match_dims,
+        }],
+        solver: &solver,
+        options: LocalizeOptions::default(),
+    };
+    localizer.localize(image, &camera).unwrap().cam_from_world
+}
+
 fn within(p: &Pose, gt: &Pose, t: f64, r: f64) -> bool {
     translation_error_m(p, gt) <= t && rotation_error_deg(p, gt) <= r
 }
@@ -172,33 +207,14 @@ fn matloc_localizes_test_views_with_the_learned_encoder() {
 fn a_perfect_encoder_bounds_what_matching_pnp_and_refinement_reach() {
     let b = built();
     let map = LoadedMap::open(&b.map_dir).unwrap();
-    let solver = LoRansacPnp::default();
     let (mut ok, mut errors) = (0, Vec::new());
     for f in b.dataset.split(Split::Test) {
         let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
-        // The block's NeRF features rendered at the true pose as the query's, from the place
-        // classifier's hypotheses and the uncalibrated prior confidence.
+        // From the place classifier's hypotheses, matching on the selected dims.
         let blk = &map.blocks.0[0];
-        let oracle = RenderedQueryEncoder {
-            renderer: blk.renderer.as_ref(),
-            camera,
-            cam_from_world: f.cam_from_world,
-            dims: (0..47).collect(),
-            stride: 4,
-        };
-        let localizer = Localizer {
-            place: map.place.as_ref(),
-            blocks: vec![LocalizerBlock {
-                renderer: blk.renderer.as_ref(),
-                encoder: &oracle,
-                matcher: blk.matcher.as_ref(),
-                dims: blk.dims.clone(),
-                match_dims: blk.match_dims.clone(),
-            }],
-            solver: &solver,
-            options: LocalizeOptions::default(),
-        };
-        match localizer.localize(&image, &camera).unwrap().cam_from_world {
+        let place = map.place.as_ref();
+        let est = perfect_encoder_pose(&map, place, &image, camera, f, blk.match_dims.clone());
+        match est {
             Some(p) => {
                 errors.push(translation_error_m(&p, &f.cam_from_world));
                 ok += usize::from(within(&p, &f.cam_from_world, 1.0, 2.0));
@@ -384,7 +400,6 @@ fn build_and_localize(dataset: &Dataset, map_dir: &Path, config: Option<&MapConf
     let surface: serde_json::Value =
         serde_json::from_slice(&std::fs::read(map_dir.join("surface.json")).unwrap()).unwrap();
     let map = LoadedMap::open(map_dir).unwrap();
-    let solver = LoRansacPnp::default();
     let mut perfect = Vec::new();
     let mut place_within_5m = 0;
     for (i, f) in dataset.split(Split::Test).enumerate() {
@@ -394,29 +409,9 @@ fn build_and_localize(dataset: &Dataset, map_dir: &Path, config: Option<&MapConf
             top.first()
                 .is_some_and(|h| translation_error_m(&h.cam_from_world, &f.cam_from_world) <= 5.0),
         );
-        let blk = &map.blocks.0[0];
-        let oracle = RenderedQueryEncoder {
-            renderer: blk.renderer.as_ref(),
-            camera,
-            cam_from_world: f.cam_from_world,
-            dims: (0..47).collect(),
-            stride: 4,
-        };
         let start = FixedStart(start_of(&f.cam_from_world, i));
-        let localizer = Localizer {
-            place: &start,
-            blocks: vec![LocalizerBlock {
-                renderer: blk.renderer.as_ref(),
-                encoder: &oracle,
-                matcher: blk.matcher.as_ref(),
-                dims: blk.dims.clone(),
-                match_dims: None,
-            }],
-            solver: &solver,
-            options: LocalizeOptions::default(),
-        };
         perfect.push(
-            match localizer.localize(&image, &camera).unwrap().cam_from_world {
+            match perfect_encoder_pose(&map, &start, &image, camera, f, None) {
                 Some(p) => translation_error_m(&p, &f.cam_from_world),
                 None => f64::INFINITY,
             },
