@@ -1,5 +1,6 @@
-//! `matloc map build|info|verify|config`: build (or resume) a map, summarise or check one,
-//! print the default build configuration.
+//! `matloc map build|plan|block|finish|slurm|info|verify|config`: build (or resume) a map in
+//! one process or as independent jobs (plan, one job per block, finish) with Slurm scripts for
+//! them, summarise or check a map, print the default build configuration.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -8,10 +9,13 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::{MultiProgress, ProgressBar};
 use matloc_pipeline::MapDir;
-use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
+use matloc_pipeline::build::{
+    BuildEvent, MapConfig, build_map, plan_map, run_block_job, run_finish_job,
+};
 use matloc_pipeline::map::MapError;
 use matloc_pipeline::map::layout::{
-    CONFIDENCE_FILE, CalibrationRecord, SelectionRecord, required_stages, selection_file,
+    CONFIDENCE_FILE, CalibrationRecord, PLAN_FILE, PLAN_FORMAT, PlanRecord, SelectionRecord,
+    block_stages, required_stages, selection_file,
 };
 
 use crate::progress;
@@ -23,6 +27,35 @@ pub enum MapCommand {
     /// Build a map: partition, sub-NeRFs, GT pairs, encoders, selection, place, calibration.
     /// A killed build resumes where it stopped when run again with the same config.
     Build(BuildArgs),
+    /// First step of a build as independent jobs: check the dataset, find the surface,
+    /// partition, and write the job list (MAP/plan.json: block ids and each job's command).
+    /// Same options as `map build`.
+    Plan(BuildArgs),
+    /// One block's job of a planned map: its sub-NeRF, pairs, encoder and selection. Writes
+    /// only under MAP/blocks/B (jobs of different blocks run side by side); rerun after a
+    /// kill, it resumes.
+    Block {
+        /// Map directory (planned with `map plan`).
+        map: PathBuf,
+        /// Block id.
+        #[arg(long)]
+        block: usize,
+        /// Dataset directory (default: the one in the plan).
+        #[arg(long)]
+        data: Option<PathBuf>,
+    },
+    /// Last job of a planned map: merges the blocks' records into the manifest, trains the
+    /// place predictor and calibrates. Refuses, naming them, while blocks are missing.
+    Finish {
+        /// Map directory.
+        map: PathBuf,
+        /// Dataset directory (default: the one in the plan).
+        #[arg(long)]
+        data: Option<PathBuf>,
+    },
+    /// Write Slurm batch scripts for a planned map: a job array over the blocks, a finish job
+    /// that runs after all of them succeeded, and submit.sh that submits both.
+    Slurm(SlurmArgs),
     /// Summarise a map: blocks, sizes, selected dims, stage times. Fails (after the summary)
     /// when the map is incomplete or damaged, with the reasons on stderr.
     Info {
@@ -77,6 +110,37 @@ pub struct BuildArgs {
     pub max_side: Option<u32>,
 }
 
+/// Arguments of `matloc map slurm`.
+#[derive(Args)]
+pub struct SlurmArgs {
+    /// Map directory (planned with `map plan`).
+    pub map: PathBuf,
+    /// Slurm partition (default: the cluster's).
+    #[arg(long)]
+    pub partition: Option<String>,
+    /// CPUs per block job (also the job's worker threads).
+    #[arg(long, default_value_t = 4)]
+    pub cpus_per_task: u32,
+    /// Memory per job, as Slurm writes it (e.g. 8G).
+    #[arg(long, default_value = "8G")]
+    pub mem: String,
+    /// Time limit per job, as Slurm writes it (e.g. 02:00:00).
+    #[arg(long, default_value = "02:00:00")]
+    pub time: String,
+    /// Slurm account to charge.
+    #[arg(long)]
+    pub account: Option<String>,
+    /// Block jobs running at once at most (`--array=…%N`; default: no limit).
+    #[arg(long)]
+    pub max_running: Option<u32>,
+    /// The matloc executable the jobs run (default: the one that planned the map).
+    #[arg(long)]
+    pub matloc: Option<PathBuf>,
+    /// Directory for the scripts (default: MAP/slurm); job logs go to its logs/.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
 /// `--surface` on the command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum SurfaceArg {
@@ -104,23 +168,46 @@ impl From<SurfaceArg> for matloc_surface::SurfaceChoice {
 /// Runs `matloc map ...`.
 pub fn run(cmd: &MapCommand, quiet: bool) -> Result<()> {
     match cmd {
-        MapCommand::Build(a) => {
-            let mut config = match &a.config {
-                Some(p) => read_config(p)?,
-                None => MapConfig::default(),
-            };
-            if let Some(s) = a.nerf_steps {
-                config.nerf.steps = s;
-            }
-            if let Some(s) = a.surface {
-                config.surface.source = s.into();
-            }
-            if let Some(m) = a.max_side {
-                anyhow::ensure!(m >= 16, "--max-side must be at least 16, got {m}");
-                config.images.max_side = Some(m);
-            }
-            build(&a.data, &a.out, &config, &a.split, quiet)
+        MapCommand::Build(a) => build(&a.data, &a.out, &build_config(a)?, &a.split, quiet),
+        MapCommand::Plan(a) => plan(&a.data, &a.out, &build_config(a)?, &a.split, quiet),
+        MapCommand::Block { map, block, data } => {
+            let dataset = job_dataset(map, data.as_deref())?;
+            let mut bars = StageBars::new(quiet);
+            let t0 = Instant::now();
+            let dir = run_block_job(&dataset, map, *block, &mut |e| bars.event(e))
+                .with_context(|| format!("building block {block} of map {}", map.display()))?;
+            bars.finish()?;
+            let bytes: u64 = dir
+                .manifest()
+                .files
+                .iter()
+                .filter(|(k, _)| k.starts_with(&format!("blocks/{block}/")))
+                .map(|(_, f)| f.bytes)
+                .sum::<u64>()
+                + block_record_bytes(&dir, *block);
+            outln!(
+                "block {block} of map {} done in {:.1} s ({:.1} MB)",
+                map.display(),
+                t0.elapsed().as_secs_f64(),
+                bytes as f64 / 1e6
+            )
         }
+        MapCommand::Finish { map, data } => {
+            let dataset = job_dataset(map, data.as_deref())?;
+            let mut bars = StageBars::new(quiet);
+            let t0 = Instant::now();
+            let dir = run_finish_job(&dataset, map, &mut |e| bars.event(e))
+                .with_context(|| format!("finishing map {}", map.display()))?;
+            bars.finish()?;
+            outln!(
+                "map {} complete in {:.1} s ({} blocks, {:.1} MB)",
+                map.display(),
+                t0.elapsed().as_secs_f64(),
+                dir.manifest().blocks.len(),
+                dir.total_bytes() as f64 / 1e6
+            )
+        }
+        MapCommand::Slurm(a) => slurm(a),
         MapCommand::Info { map, json } => info(map, *json),
         MapCommand::Verify { map } => verify(map),
         MapCommand::Config { .. } => {
@@ -132,11 +219,69 @@ pub fn run(cmd: &MapCommand, quiet: bool) -> Result<()> {
     }
 }
 
+/// The build config of `map build` / `map plan`: the file or the defaults, then the flags.
+fn build_config(a: &BuildArgs) -> Result<MapConfig> {
+    let mut config = match &a.config {
+        Some(p) => read_config(p)?,
+        None => MapConfig::default(),
+    };
+    if let Some(s) = a.nerf_steps {
+        config.nerf.steps = s;
+    }
+    if let Some(s) = a.surface {
+        config.surface.source = s.into();
+    }
+    if let Some(m) = a.max_side {
+        anyhow::ensure!(m >= 16, "--max-side must be at least 16, got {m}");
+        config.images.max_side = Some(m);
+    }
+    Ok(config)
+}
+
 /// Reads a map config file.
 pub fn read_config(path: &Path) -> Result<MapConfig> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    serde_json::from_str(&text).with_context(|| format!("parsing map config {}", path.display()))
+    let value: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("parsing map config {}", path.display()))?;
+    if !value.is_object() {
+        anyhow::bail!(
+            "map config {}: the top level must be a JSON object of sections, got {}",
+            path.display(),
+            match value {
+                serde_json::Value::Array(_) => "an array",
+                serde_json::Value::String(_) => "a string",
+                serde_json::Value::Number(_) => "a number",
+                serde_json::Value::Bool(_) => "a boolean",
+                _ => "null",
+            }
+        );
+    }
+    serde_json::from_value(value).with_context(|| format!("parsing map config {}", path.display()))
+}
+
+/// Reads the dataset, opens (or creates) the map, applies the split rule from the flags (or,
+/// without flags, the one the map records) and records it in the manifest.
+fn open_for_build(
+    data: &Path,
+    out: &Path,
+    config: &MapConfig,
+    split: &SplitArgs,
+) -> Result<matloc_data::Dataset> {
+    let mut dataset = matloc_data::read_dataset(data)
+        .with_context(|| format!("reading dataset {}", data.display()))?;
+    // The same manifest config the build opens the map with.
+    let config_json = serde_json::to_value(config).context("map config")?;
+    let mut map_dir = MapDir::create_or_resume(out, config_json)
+        .with_context(|| format!("opening map {}", out.display()))?;
+    let spec = match split.spec()? {
+        Some(s) => Some(s),
+        None => map_dir.manifest().split.clone(),
+    };
+    split_args::apply(spec.as_ref(), &mut dataset)
+        .with_context(|| format!("splitting dataset {}", data.display()))?;
+    map_dir.record_split(spec.as_ref())?;
+    Ok(dataset)
 }
 
 /// Builds (or resumes) a map with progress bars per stage. A split rule from the flags (or,
@@ -149,74 +294,12 @@ pub fn build(
     split: &SplitArgs,
     quiet: bool,
 ) -> Result<()> {
-    let mut dataset = matloc_data::read_dataset(data)
-        .with_context(|| format!("reading dataset {}", data.display()))?;
-    // The same manifest config `build_map` opens the map with.
-    let config_json = serde_json::to_value(config).context("map config")?;
-    let mut map_dir = MapDir::create_or_resume(out, config_json)
-        .with_context(|| format!("opening map {}", out.display()))?;
-    let spec = match split.spec()? {
-        Some(s) => Some(s),
-        None => map_dir.manifest().split.clone(),
-    };
-    split_args::apply(spec.as_ref(), &mut dataset)
-        .with_context(|| format!("splitting dataset {}", data.display()))?;
-    map_dir.record_split(spec.as_ref())?;
-    drop(map_dir);
+    let dataset = open_for_build(data, out, config, split)?;
     let t0 = Instant::now();
-    // Bars of the running stages (several while sub-NeRF blocks train side by side), by name;
-    // `StageProgress` goes to the one started last.
-    let bars = MultiProgress::new();
-    let mut running: Vec<(String, ProgressBar)> = Vec::new();
-    // A stdout that cannot be written does not stop the build; it is reported at the end.
-    let mut out_err: Option<anyhow::Error> = None;
-    let mut on_event = |e: &BuildEvent| match e {
-        BuildEvent::StageStarted { name, total } => {
-            let b = bars.add(progress::bar(*total, name, quiet));
-            running.push((name.clone(), b));
-        }
-        BuildEvent::StageProgress { done, message } => {
-            if let Some((_, b)) = running.last() {
-                b.set_position(*done);
-                b.set_message(message.clone());
-            }
-        }
-        BuildEvent::StageProgressOf {
-            name,
-            done,
-            message,
-        } => {
-            if let Some((_, b)) = running.iter().find(|(n, _)| n == name) {
-                b.set_position(*done);
-                b.set_message(format!("{name} {message}"));
-            }
-        }
-        BuildEvent::StageFinished {
-            name,
-            seconds,
-            skipped,
-        } => {
-            if let Some(i) = running.iter().position(|(n, _)| n == name) {
-                let (_, b) = running.remove(i);
-                b.finish_and_clear();
-                bars.remove(&b);
-            }
-            let line = if *skipped {
-                format!("{name:<14} done earlier")
-            } else {
-                format!("{name:<14} {seconds:>8.1} s")
-            };
-            // Printed with the live bars out of the way, not through them.
-            if let Err(e) = bars.suspend(|| outln!("{line}")) {
-                out_err.get_or_insert(e);
-            }
-        }
-    };
-    let map = build_map(&dataset, out, config, &mut on_event)
+    let mut bars = StageBars::new(quiet);
+    let map = build_map(&dataset, out, config, &mut |e| bars.event(e))
         .with_context(|| format!("building map {}", out.display()))?;
-    if let Some(e) = out_err {
-        return Err(e);
-    }
+    bars.finish()?;
     outln!(
         "map {} complete in {:.1} s ({} blocks, {:.1} MB)",
         out.display(),
@@ -225,6 +308,329 @@ pub fn build(
         map.total_bytes() as f64 / 1e6
     )?;
     Ok(())
+}
+
+/// `matloc map plan`: the plan step, then the job list in MAP/plan.json.
+fn plan(data: &Path, out: &Path, config: &MapConfig, split: &SplitArgs, quiet: bool) -> Result<()> {
+    let dataset = open_for_build(data, out, config, split)?;
+    let mut bars = StageBars::new(quiet);
+    let planned = plan_map(&dataset, out, config, &mut |e| bars.event(e))
+        .with_context(|| format!("planning map {}", out.display()))?;
+    bars.finish()?;
+    let mut map = planned.map;
+    let absolute = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let program = std::env::current_exe()
+        .map(|p| absolute(&p))
+        .unwrap_or_else(|_| PathBuf::from("matloc"));
+    let root = absolute(out);
+    let command = |tail: &[String]| -> Vec<String> {
+        let mut v = vec![
+            program.display().to_string(),
+            "map".to_string(),
+            tail[0].clone(),
+            root.display().to_string(),
+        ];
+        v.extend_from_slice(&tail[1..]);
+        v
+    };
+    let blocks: Vec<usize> = (0..planned.partition.blocks.len()).collect();
+    let record = PlanRecord {
+        format: PLAN_FORMAT.to_string(),
+        version: 1,
+        data: absolute(data).display().to_string(),
+        block_commands: blocks
+            .iter()
+            .map(|b| command(&["block".into(), "--block".into(), b.to_string()]))
+            .collect(),
+        finish_command: command(&["finish".into()]),
+        blocks,
+    };
+    map.write_json(PLAN_FILE, &record)
+        .and_then(|()| map.save())
+        .with_context(|| format!("writing the plan of map {}", out.display()))?;
+    outln!(
+        "map {} planned: {} blocks; run each block job, then the finish job:",
+        out.display(),
+        record.blocks.len()
+    )?;
+    for c in &record.block_commands {
+        outln!("  {}", shell_line(c))?;
+    }
+    outln!("  {}", shell_line(&record.finish_command))?;
+    outln!(
+        "or write Slurm scripts: {} map slurm {}",
+        shell_quote(&program.display().to_string()),
+        shell_quote(&root.display().to_string())
+    )
+}
+
+/// The plan of a planned map (checksum verified).
+fn read_plan(map: &MapDir) -> Result<PlanRecord> {
+    let plan: PlanRecord = map.read_json(PLAN_FILE).with_context(|| {
+        format!(
+            "map {} has no job plan; run `matloc map plan` first",
+            map.root().display()
+        )
+    })?;
+    anyhow::ensure!(
+        plan.format == PLAN_FORMAT && plan.version == 1,
+        "{}: format {:?} version {}, expected {PLAN_FORMAT:?} version 1",
+        map.root().join(PLAN_FILE).display(),
+        plan.format,
+        plan.version
+    );
+    anyhow::ensure!(
+        plan.block_commands.len() == plan.blocks.len(),
+        "{}: `block_commands` has {} entries for {} blocks",
+        map.root().join(PLAN_FILE).display(),
+        plan.block_commands.len(),
+        plan.blocks.len()
+    );
+    Ok(plan)
+}
+
+/// The dataset of a block or finish job: `data`, else the plan's, else the one the manifest
+/// records, with the map's split rule applied.
+fn job_dataset(root: &Path, data: Option<&Path>) -> Result<matloc_data::Dataset> {
+    let map =
+        MapDir::open_manifest(root).with_context(|| format!("opening map {}", root.display()))?;
+    let data = match data {
+        Some(d) => d.to_path_buf(),
+        None => match map.manifest().files.contains_key(PLAN_FILE) {
+            true => PathBuf::from(read_plan(&map)?.data),
+            false => map
+                .manifest()
+                .scene
+                .get("dataset")
+                .and_then(|d| d.as_str())
+                .map(PathBuf::from)
+                .with_context(|| {
+                    format!(
+                        "{}: no plan and no `scene.dataset`; pass --data",
+                        root.join("manifest.json").display()
+                    )
+                })?,
+        },
+    };
+    let mut dataset = matloc_data::read_dataset(&data)
+        .with_context(|| format!("reading dataset {}", data.display()))?;
+    split_args::apply(map.manifest().split.as_ref(), &mut dataset)
+        .with_context(|| format!("splitting dataset {}", data.display()))?;
+    Ok(dataset)
+}
+
+/// Bytes of block `b`'s record file (0 when absent).
+fn block_record_bytes(map: &MapDir, b: usize) -> u64 {
+    map.read_block_record(b)
+        .ok()
+        .flatten()
+        .map_or(0, |r| r.files.values().map(|f| f.bytes).sum())
+}
+
+/// `s` quoted for a POSIX shell (unchanged when it needs no quoting).
+fn shell_quote(s: &str) -> String {
+    let plain = !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "/._-+=:,@%".contains(c));
+    if plain {
+        s.to_string()
+    } else {
+        format!("'{}'", s.replace('\'', r"'\''"))
+    }
+}
+
+/// A command line for a POSIX shell.
+fn shell_line(argv: &[String]) -> String {
+    argv.iter()
+        .map(|a| shell_quote(a))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// The Slurm scripts of a planned map: (file name, content).
+fn slurm_scripts(plan: &PlanRecord, a: &SlurmArgs, out: &Path) -> Result<Vec<(String, String)>> {
+    anyhow::ensure!(!plan.blocks.is_empty(), "the plan has no blocks");
+    anyhow::ensure!(a.cpus_per_task >= 1, "--cpus-per-task must be at least 1");
+    let logs = out.join("logs");
+    let program = match &a.matloc {
+        Some(p) => p.display().to_string(),
+        None => plan.finish_command[0].clone(),
+    };
+    let with_program = |argv: &[String]| -> String {
+        let mut v = argv.to_vec();
+        v[0] = program.clone();
+        shell_line(&v)
+    };
+    let header = |name: &str, log: &str, cpus: u32| {
+        let mut h = format!(
+            "#!/bin/bash\n#SBATCH --job-name={name}\n#SBATCH --cpus-per-task={cpus}\n\
+             #SBATCH --mem={}\n#SBATCH --time={}\n#SBATCH --output={}\n\
+             #SBATCH --open-mode=append\n",
+            a.mem,
+            a.time,
+            shell_quote(&logs.join(log).display().to_string())
+        );
+        if let Some(p) = &a.partition {
+            h.push_str(&format!("#SBATCH --partition={p}\n"));
+        }
+        if let Some(acc) = &a.account {
+            h.push_str(&format!("#SBATCH --account={acc}\n"));
+        }
+        h
+    };
+    let n = plan.blocks.len();
+    let array = match a.max_running {
+        Some(k) => format!("0-{}%{k}", n - 1),
+        None => format!("0-{}", n - 1),
+    };
+    // The block id of each array index, and each block's command with `$B` for the id.
+    let ids: Vec<String> = plan.blocks.iter().map(|b| b.to_string()).collect();
+    let mut block_cmd = plan.block_commands[0].clone();
+    anyhow::ensure!(
+        block_cmd.last() == Some(&ids[0]) && block_cmd.len() >= 2,
+        "plan.json: the first block command does not end with its block id {}",
+        ids[0]
+    );
+    block_cmd.pop();
+    let block_line = format!("{} \"$B\"", with_program(&block_cmd));
+    let blocks = format!(
+        "{}#SBATCH --array={array}\n\
+         # One block per array task: SLURM_ARRAY_TASK_ID indexes BLOCKS. A block whose job was\n\
+         # killed resumes when its index is submitted again (sbatch --array=K blocks.sbatch).\n\
+         set -euo pipefail\n\
+         BLOCKS=({})\n\
+         B=\"${{BLOCKS[$SLURM_ARRAY_TASK_ID]}}\"\n\
+         export RAYON_NUM_THREADS=\"${{SLURM_CPUS_PER_TASK:-1}}\"\n\
+         exec {block_line}\n",
+        header("matloc-blocks", "block-%a.log", a.cpus_per_task),
+        ids.join(" ")
+    );
+    let finish = format!(
+        "{}# Submitted with --dependency=afterok:<array job>: runs once every block succeeded.\n\
+         set -euo pipefail\n\
+         export RAYON_NUM_THREADS=\"${{SLURM_CPUS_PER_TASK:-1}}\"\n\
+         exec {}\n",
+        header("matloc-finish", "finish.log", a.cpus_per_task),
+        with_program(&plan.finish_command)
+    );
+    let submit = format!(
+        "#!/bin/bash\n\
+         # Submits the block array, then the finish job depending on all of it; prints both ids.\n\
+         set -euo pipefail\n\
+         cd {}\n\
+         mkdir -p logs\n\
+         array=$(sbatch --parsable \"$@\" blocks.sbatch)\n\
+         array=${{array%%;*}}\n\
+         finish=$(sbatch --parsable \"$@\" --dependency=afterok:\"$array\" finish.sbatch)\n\
+         finish=${{finish%%;*}}\n\
+         echo \"$array $finish\"\n",
+        shell_quote(&out.display().to_string())
+    );
+    Ok(vec![
+        ("blocks.sbatch".into(), blocks),
+        ("finish.sbatch".into(), finish),
+        ("submit.sh".into(), submit),
+    ])
+}
+
+/// `matloc map slurm`: writes the scripts and prints how to submit them.
+fn slurm(a: &SlurmArgs) -> Result<()> {
+    let map = MapDir::open_manifest(&a.map)
+        .with_context(|| format!("opening map {}", a.map.display()))?;
+    let plan = read_plan(&map)?;
+    let out = a.out.clone().unwrap_or_else(|| a.map.join("slurm"));
+    std::fs::create_dir_all(out.join("logs"))
+        .with_context(|| format!("creating {}", out.join("logs").display()))?;
+    let out = std::fs::canonicalize(&out).unwrap_or(out);
+    for (name, text) in slurm_scripts(&plan, a, &out)? {
+        let path = out.join(&name);
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755))
+                .with_context(|| format!("making {} executable", path.display()))?;
+        }
+    }
+    let dir = shell_quote(&out.display().to_string());
+    outln!(
+        "wrote {dir}/blocks.sbatch ({} blocks), {dir}/finish.sbatch, {dir}/submit.sh; submit with\n  \
+         {dir}/submit.sh\nor by hand:\n  \
+         A=$(sbatch --parsable {dir}/blocks.sbatch)\n  \
+         sbatch --parsable --dependency=afterok:${{A%%;*}} {dir}/finish.sbatch",
+        plan.blocks.len()
+    )
+}
+
+/// Progress bars of the running stages (several while sub-NeRF blocks train side by side), by
+/// name; `StageProgress` goes to the one started last. A line per finished stage on stdout.
+struct StageBars {
+    bars: MultiProgress,
+    running: Vec<(String, ProgressBar)>,
+    quiet: bool,
+    /// A stdout that cannot be written does not stop the build; it is reported at the end.
+    out_err: Option<anyhow::Error>,
+}
+
+impl StageBars {
+    fn new(quiet: bool) -> Self {
+        Self {
+            bars: MultiProgress::new(),
+            running: Vec::new(),
+            quiet,
+            out_err: None,
+        }
+    }
+
+    fn event(&mut self, e: &BuildEvent) {
+        match e {
+            BuildEvent::StageStarted { name, total } => {
+                let b = self.bars.add(progress::bar(*total, name, self.quiet));
+                self.running.push((name.clone(), b));
+            }
+            BuildEvent::StageProgress { done, message } => {
+                if let Some((_, b)) = self.running.last() {
+                    b.set_position(*done);
+                    b.set_message(message.clone());
+                }
+            }
+            BuildEvent::StageProgressOf {
+                name,
+                done,
+                message,
+            } => {
+                if let Some((_, b)) = self.running.iter().find(|(n, _)| n == name) {
+                    b.set_position(*done);
+                    b.set_message(format!("{name} {message}"));
+                }
+            }
+            BuildEvent::StageFinished {
+                name,
+                seconds,
+                skipped,
+            } => {
+                if let Some(i) = self.running.iter().position(|(n, _)| n == name) {
+                    let (_, b) = self.running.remove(i);
+                    b.finish_and_clear();
+                    self.bars.remove(&b);
+                }
+                let line = if *skipped {
+                    format!("{name:<14} done earlier")
+                } else {
+                    format!("{name:<14} {seconds:>8.1} s")
+                };
+                // Printed with the live bars out of the way, not through them.
+                if let Err(e) = self.bars.suspend(|| outln!("{line}")) {
+                    self.out_err.get_or_insert(e);
+                }
+            }
+        }
+    }
+
+    /// The first stdout error, if any.
+    fn finish(self) -> Result<()> {
+        self.out_err.map_or(Ok(()), Err)
+    }
 }
 
 /// Fails naming the count when `problems` is not empty.
@@ -343,6 +749,18 @@ fn info(root: &Path, json: bool) -> Result<()> {
             "complete".to_string()
         }
     )?;
+    // Blocks built by `map block` jobs and not yet merged by `map finish`.
+    let jobs: Vec<String> = (0..m.blocks.len())
+        .filter(|&b| !block_stages(b).iter().all(|s| map.stage_done(s)))
+        .map(|b| match map.read_block_record(b) {
+            Ok(Some(r)) => format!("{b}: {}/4 stages", r.stages.len()),
+            Ok(None) => format!("{b}: not started"),
+            Err(e) => format!("{b}: {e}"),
+        })
+        .collect();
+    if !jobs.is_empty() && m.files.contains_key(PLAN_FILE) {
+        outln!("  block jobs   {}", jobs.join(", "))?;
+    }
     outln!("  blocks:")?;
     for (b, e) in m.blocks.iter().enumerate() {
         let bytes: u64 = m
@@ -396,6 +814,69 @@ fn report_problems(problems: &[MapError]) {
 #[cfg(test)]
 mod tests {
     use std::path::Path;
+
+    use super::{PlanRecord, SlurmArgs, shell_line, slurm_scripts};
+
+    #[test]
+    fn shell_words_are_quoted_only_when_needed() {
+        let argv = ["/opt/m atloc", "map", "it's", "--block", "3"].map(String::from);
+        assert_eq!(shell_line(&argv), r"'/opt/m atloc' map 'it'\''s' --block 3");
+        assert_eq!(shell_line(&[String::new()]), "''");
+    }
+
+    #[test]
+    fn slurm_scripts_run_an_array_over_the_blocks_and_a_finish_job() {
+        let cmd = |tail: &[&str]| -> Vec<String> {
+            ["/bin/matloc", "map"]
+                .iter()
+                .chain(tail)
+                .map(|s| s.to_string())
+                .collect()
+        };
+        let plan = PlanRecord {
+            format: "matloc-plan".into(),
+            version: 1,
+            data: "/d".into(),
+            blocks: vec![0, 1, 2],
+            block_commands: (0..3)
+                .map(|b| cmd(&["block", "/maps/m 1", "--block", &b.to_string()]))
+                .collect(),
+            finish_command: cmd(&["finish", "/maps/m 1"]),
+        };
+        let args = SlurmArgs {
+            map: "/maps/m 1".into(),
+            partition: Some("cpu".into()),
+            cpus_per_task: 8,
+            mem: "16G".into(),
+            time: "04:00:00".into(),
+            account: None,
+            max_running: Some(2),
+            matloc: None,
+            out: None,
+        };
+        let scripts = slurm_scripts(&plan, &args, Path::new("/maps/m 1/slurm")).unwrap();
+        let get = |name: &str| &scripts.iter().find(|(n, _)| n == name).unwrap().1;
+        let blocks = get("blocks.sbatch");
+        for line in [
+            "#SBATCH --array=0-2%2",
+            "#SBATCH --cpus-per-task=8",
+            "#SBATCH --mem=16G",
+            "#SBATCH --time=04:00:00",
+            "#SBATCH --partition=cpu",
+            "#SBATCH --output='/maps/m 1/slurm/logs/block-%a.log'",
+            "BLOCKS=(0 1 2)",
+            "exec /bin/matloc map block '/maps/m 1' --block \"$B\"",
+        ] {
+            assert!(blocks.contains(line), "{line} not in\n{blocks}");
+        }
+        assert!(!blocks.contains("--account"), "{blocks}");
+        assert!(get("finish.sbatch").contains("exec /bin/matloc map finish '/maps/m 1'"));
+        assert!(get("submit.sh").contains("--dependency=afterok:\"$array\" finish.sbatch"));
+        // A plan whose commands do not end with the block id is refused.
+        let mut bad = plan.clone();
+        bad.block_commands[0].push("--quiet".into());
+        assert!(slurm_scripts(&bad, &args, Path::new("/s")).is_err());
+    }
 
     /// The shipped quality config is a partial file: what it names changes, the rest stays
     /// the default.

@@ -158,7 +158,7 @@ pub(crate) fn stage(
 }
 
 /// A stage's training curve as JSON lines in `curves/<stage>.jsonl` inside the map (`/` in
-/// the stage name becomes `_`), one object per report: `step`, `t_s` (seconds since the log
+/// the stage name becomes `_`; a block job's under `blocks/B/curves/`), one object per report: `step`, `t_s` (seconds since the log
 /// was opened) and the stage's values (loss, ...). Appended while the stage runs, so a long
 /// build can be followed and plotted; a resumed stage appends after the interrupted run. Not
 /// one of the map's checksummed files, and a log that cannot be written only warns.
@@ -170,7 +170,7 @@ pub struct CurveLog {
 impl CurveLog {
     /// Opens (appends to) the curve of `stage` in `map`.
     pub fn open(map: &MapDir, stage: &str) -> CurveLog {
-        let name = format!("curves/{}.jsonl", stage.replace('/', "_"));
+        let name = map.curve_name(stage);
         let file = map.path_of(&name).ok().and_then(|path| {
             let opened = path
                 .parent()
@@ -216,7 +216,8 @@ impl CurveLog {
     }
 }
 
-/// Lists every file under `dir` (relative to the map root) in the manifest.
+/// Lists every file directly under `dir` (relative to the map root) in the manifest (a block
+/// job: in its record), the block record itself excepted.
 pub(crate) fn register_dir(map: &mut MapDir, dir: &str) -> Result<(), PipelineError> {
     let path = map.path_of(dir)?;
     let entries = std::fs::read_dir(&path).map_err(|e| PipelineError::Io {
@@ -229,7 +230,11 @@ pub(crate) fn register_dir(map: &mut MapDir, dir: &str) -> Result<(), PipelineEr
             source: e,
         })?;
         let file = entry.file_name().to_string_lossy().to_string();
-        if entry.path().is_file() && !file.ends_with(".tmp") {
+        // The block record describes the files; it is not one of them.
+        if entry.path().is_file()
+            && !file.ends_with(".tmp")
+            && file != crate::map::layout::BLOCK_RECORD_FILE
+        {
             map.register_file(&format!("{dir}/{file}"))?;
         }
     }

@@ -44,16 +44,24 @@ pub fn block_model_config(
     serde_json::from_value(v).map_err(|source| PipelineError::ConfigJson { field, source })
 }
 
-/// Trains every block's sub-NeRF the manifest does not record as done.
+/// Trains the sub-NeRF of each of `blocks` the map does not record as done.
 pub fn run(
     dataset: &Dataset,
     partition: &Partition,
+    blocks: &[usize],
     map: &mut MapDir,
     config: &MapConfig,
     progress: &mut dyn FnMut(&BuildEvent),
 ) -> Result<(), PipelineError> {
     let mut pending = Vec::new();
-    for b in 0..partition.blocks.len() {
+    for &b in blocks {
+        if b >= partition.blocks.len() {
+            return Err(crate::map::MapError::NoSuchBlock {
+                block: b,
+                blocks: partition.blocks.len(),
+            }
+            .into());
+        }
         let name = format!("nerf/{b}");
         if map.stage_done(&name) {
             progress(&BuildEvent::StageFinished {

@@ -31,7 +31,7 @@ use crate::map::layout::{SelectionRecord, pairs_file, selection_file};
 use crate::map::load::{MapBlock, NerfMapComponents, block_matcher, load_encoder};
 use crate::map::manifest::MapDir;
 
-/// Selects block `b`'s dims and records them in the manifest.
+/// Selects block `b`'s dims and records them in the manifest (a block job: in its record).
 pub fn run(
     dataset: &Dataset,
     partition: &Partition,
@@ -58,9 +58,7 @@ pub fn run(
             }
         };
         map.write_json(&selection_file(b), &record)?;
-        if let Some(e) = map.manifest_mut().blocks.get_mut(b) {
-            e.selected_dims = record.dims;
-        }
+        map.set_selected_dims(b, record.dims);
         map.save()?;
         Ok(())
     })

@@ -13,9 +13,49 @@ pub const SURFACE_FILE: &str = "surface.json";
 /// The sparse points the partition's surface came from, when it came from points (PLY).
 pub const SURFACE_POINTS_FILE: &str = "surface_points.ply";
 
+/// Name of the job plan inside the map (`matloc map plan`).
+pub const PLAN_FILE: &str = "plan.json";
+
+/// Value of [`PlanRecord::format`].
+pub const PLAN_FORMAT: &str = "matloc-plan";
+
+/// The job list of a planned map: which blocks to build and the commands that build them and
+/// then finish the map. Written once by the plan step, read by the block and finish jobs and
+/// the scheduler scripts.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlanRecord {
+    /// Always [`PLAN_FORMAT`].
+    pub format: String,
+    /// Plan format version (1).
+    pub version: u32,
+    /// The dataset directory the map is built from (absolute when the plan step could
+    /// resolve it); the block and finish jobs read it unless told another.
+    pub data: String,
+    /// Block ids, one job each.
+    pub blocks: Vec<usize>,
+    /// Per block (same order as `blocks`), the command line of its job.
+    pub block_commands: Vec<Vec<String>>,
+    /// The command line of the finish job, to run once every block job has succeeded.
+    pub finish_command: Vec<String>,
+}
+
 /// Directory of block `b` inside the map.
 pub fn block_dir(b: usize) -> String {
     format!("blocks/{b}")
+}
+
+/// Name of a block's record inside its directory: the stages its job completed and the files
+/// they wrote (`MapDir::open_block`).
+pub const BLOCK_RECORD_FILE: &str = "block.json";
+
+/// File of block `b`'s record.
+pub fn block_record_file(b: usize) -> String {
+    format!("{}/{BLOCK_RECORD_FILE}", block_dir(b))
+}
+
+/// Stages of one block, in build order.
+pub fn block_stages(b: usize) -> [String; 4] {
+    ["nerf", "pairs", "encoder", "select"].map(|s| format!("{s}/{b}"))
 }
 
 /// Name of the place model directory inside the map.
@@ -75,9 +115,7 @@ pub struct CalibrationRecord {
 pub fn required_stages(blocks: usize) -> Vec<String> {
     let mut v = vec!["partition".to_string()];
     for b in 0..blocks {
-        for s in ["nerf", "pairs", "encoder", "select"] {
-            v.push(format!("{s}/{b}"));
-        }
+        v.extend(block_stages(b));
     }
     v.push("place".into());
     v.push("calibration".into());

@@ -11,6 +11,12 @@
 //! atomically after each stage ([`MapDir::complete_stage`]), so a killed build leaves the last
 //! completed stage intact and a rebuild resumes from it. Loading checks the format, the version,
 //! that every listed file exists with its recorded size, and (on read) its checksum.
+//!
+//! A map opened for one block ([`MapDir::open_block`], the `matloc map block` job) never writes
+//! the manifest: its stages and files are recorded in the block's own record
+//! `blocks/B/block.json` ([`BlockRecord`]) and it may write only under `blocks/B/`, so jobs of
+//! different blocks can run at the same time. [`MapDir::merge_block`] (the `finish` step)
+//! checks a block's record against the files and merges it into the manifest.
 
 use std::collections::BTreeMap;
 use std::fs;
@@ -22,11 +28,22 @@ use matloc_data::split::SplitSpec;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::map::layout::{required_stages, stage_files};
+use crate::map::layout::{block_record_file, block_stages, required_stages, stage_files};
 
-/// The manifest format version this build reads and writes. Bump it on any incompatible
-/// change of the manifest or of a stage's files.
-pub const MANIFEST_VERSION: u32 = 1;
+/// The manifest format version this build writes. Bump it on any change of the manifest or of
+/// a stage's files. Version 2 adds per-block records (`blocks/B/block.json`) and the job plan
+/// (`plan.json`); the stage files are those of version 1.
+pub const MANIFEST_VERSION: u32 = 2;
+
+/// The oldest manifest version this build reads: version 1 maps have the same stage files and
+/// no per-block records, so they load and resume unchanged.
+pub const MANIFEST_MIN_VERSION: u32 = 1;
+
+/// Value of [`BlockRecord::format`].
+pub const BLOCK_RECORD_FORMAT: &str = "matloc-block";
+
+/// The block record format version this build reads and writes.
+pub const BLOCK_RECORD_VERSION: u32 = 1;
 
 /// File name of the manifest inside a map directory.
 pub const MANIFEST_FILE: &str = "manifest.json";
@@ -60,7 +77,10 @@ pub enum MapError {
         message: String,
     },
     /// The manifest was written by an incompatible version.
-    #[error("{path}: map format version {found}, this build reads version {supported}")]
+    #[error(
+        "{path}: map format version {found}, this build reads versions {MANIFEST_MIN_VERSION} to \
+         {supported}"
+    )]
     Version {
         /// The manifest file.
         path: PathBuf,
@@ -130,6 +150,42 @@ pub enum MapError {
         stage: String,
         /// The file.
         name: String,
+    },
+    /// A block id the map's partition does not have.
+    #[error("block {block}: the map has {blocks} blocks (0 to {last})", last = blocks.saturating_sub(1))]
+    NoSuchBlock {
+        /// The requested block.
+        block: usize,
+        /// Blocks of the map.
+        blocks: usize,
+    },
+    /// A block job tried to write outside its block's directory.
+    #[error("{name}: the job of block {block} writes only under blocks/{block}/")]
+    OutsideBlock {
+        /// The file.
+        name: String,
+        /// The block the map was opened for.
+        block: usize,
+    },
+    /// A block record (`blocks/B/block.json`) that does not parse or names another block.
+    #[error("{path}: malformed block record: {message}")]
+    BadBlockRecord {
+        /// The record file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// Finishing a map while some blocks have not completed.
+    #[error(
+        "{} of {total} blocks not built: {}; run `matloc map block MAP --block B` for each",
+        blocks.len(),
+        blocks.iter().map(|b| b.to_string()).collect::<Vec<_>>().join(", ")
+    )]
+    BlocksMissing {
+        /// The blocks without a complete record.
+        blocks: Vec<usize>,
+        /// Blocks of the map.
+        total: usize,
     },
     /// Resuming a build whose recorded config differs from the requested one.
     #[error(
@@ -220,11 +276,48 @@ impl Manifest {
     }
 }
 
-/// An open map directory.
+/// What one block's job has done: its completed stages and the files they wrote, with
+/// checksums. Written only by that job (`blocks/B/block.json`), merged into the manifest by
+/// [`MapDir::merge_block`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BlockRecord {
+    /// Always [`BLOCK_RECORD_FORMAT`].
+    pub format: String,
+    /// [`BLOCK_RECORD_VERSION`] when written by this build.
+    pub version: u32,
+    /// The block.
+    pub block: usize,
+    /// Completed stages of the block, in order.
+    #[serde(default)]
+    pub stages: Vec<StageRecord>,
+    /// Files the stages wrote (relative to the map root) → size and checksum.
+    #[serde(default)]
+    pub files: BTreeMap<String, FileEntry>,
+    /// Feature dims the selection stage chose.
+    #[serde(default)]
+    pub selected_dims: Vec<usize>,
+}
+
+impl BlockRecord {
+    fn new(block: usize) -> Self {
+        Self {
+            format: BLOCK_RECORD_FORMAT.to_string(),
+            version: BLOCK_RECORD_VERSION,
+            block,
+            stages: Vec::new(),
+            files: BTreeMap::new(),
+            selected_dims: Vec::new(),
+        }
+    }
+}
+
+/// An open map directory: the whole map, or one block of it ([`MapDir::open_block`]).
 #[derive(Clone, Debug)]
 pub struct MapDir {
     root: PathBuf,
     manifest: Manifest,
+    /// The block this map was opened for, with its record.
+    block: Option<BlockRecord>,
 }
 
 fn io_err(path: &Path) -> impl FnOnce(io::Error) -> MapError + '_ {
@@ -345,12 +438,16 @@ impl MapDir {
                     path: manifest_path,
                 });
             }
+            let mut dir = dir;
+            // Written from here on in this build's format (version 1 files are unchanged).
+            dir.manifest.version = MANIFEST_VERSION;
             return Ok(dir);
         }
         fs::create_dir_all(root).map_err(io_err(root))?;
         let dir = Self {
             root: root.to_path_buf(),
             manifest: Manifest::new(config),
+            block: None,
         };
         dir.save()?;
         Ok(dir)
@@ -402,7 +499,7 @@ impl MapDir {
         // Check the version before the schema, so an old or new map reports its version
         // instead of a field-level parse error.
         let found = value.get("version").and_then(|v| v.as_u64()).unwrap_or(0);
-        if found != u64::from(MANIFEST_VERSION) {
+        if !(u64::from(MANIFEST_MIN_VERSION)..=u64::from(MANIFEST_VERSION)).contains(&found) {
             return Err(MapError::Version {
                 path,
                 found: u32::try_from(found).unwrap_or(u32::MAX),
@@ -420,7 +517,165 @@ impl MapDir {
         Ok(Self {
             root: root.to_path_buf(),
             manifest,
+            block: None,
         })
+    }
+
+    /// Opens a map for the job of block `b` ([`MapDir::open`] plus the block's record, empty
+    /// when the job has not run before). Stages and files are then recorded in the block's
+    /// record, never in the manifest, and files may be written only under `blocks/B/`.
+    pub fn open_block(root: &Path, b: usize) -> Result<Self, MapError> {
+        let mut dir = Self::open(root)?;
+        let blocks = dir.manifest.blocks.len();
+        if b >= blocks {
+            return Err(MapError::NoSuchBlock { block: b, blocks });
+        }
+        dir.block = Some(
+            dir.read_block_record(b)?
+                .unwrap_or_else(|| BlockRecord::new(b)),
+        );
+        Ok(dir)
+    }
+
+    /// The block this map was opened for ([`MapDir::open_block`]).
+    pub fn block(&self) -> Option<usize> {
+        self.block.as_ref().map(|r| r.block)
+    }
+
+    /// Block `b`'s record as its job left it; `None` when the job has not saved one.
+    pub fn read_block_record(&self, b: usize) -> Result<Option<BlockRecord>, MapError> {
+        let path = self.root.join(block_record_file(b));
+        let text = match fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(MapError::Io { path, source: e }),
+        };
+        let bad = |message: String| MapError::BadBlockRecord {
+            path: path.clone(),
+            message,
+        };
+        let record: BlockRecord = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        if record.format != BLOCK_RECORD_FORMAT {
+            return Err(bad(format!("\"format\" is not \"{BLOCK_RECORD_FORMAT}\"")));
+        }
+        if record.version != BLOCK_RECORD_VERSION {
+            return Err(bad(format!(
+                "`version` {}, this build reads {BLOCK_RECORD_VERSION}",
+                record.version
+            )));
+        }
+        if record.block != b {
+            return Err(bad(format!("`block` is {}, expected {b}", record.block)));
+        }
+        let prefix = format!("blocks/{b}/");
+        for name in record.files.keys() {
+            checked_name(name)?;
+            if !name.starts_with(&prefix) {
+                return Err(bad(format!("`files`: {name} is outside {prefix}")));
+            }
+        }
+        Ok(Some(record))
+    }
+
+    /// Whether every stage of block `b` has completed: in the manifest, or in the block's
+    /// record (checked against its files by [`MapDir::merge_block`]).
+    pub fn block_done(&self, b: usize) -> Result<bool, MapError> {
+        if block_stages(b).iter().all(|s| self.stage_done(s)) {
+            return Ok(true);
+        }
+        Ok(self.read_block_record(b)?.is_some_and(|r| {
+            block_stages(b)
+                .iter()
+                .all(|s| r.stages.iter().any(|x| x.name == *s))
+        }))
+    }
+
+    /// Merges block `b`'s record into the manifest (in memory; persisted by the next
+    /// [`MapDir::save`]): its stages, its files after checking each one's size and checksum,
+    /// and its selected dims. Returns false, changing nothing, when the block has not
+    /// completed; true when it has (or the manifest records it already).
+    pub fn merge_block(&mut self, b: usize) -> Result<bool, MapError> {
+        if block_stages(b).iter().all(|s| self.stage_done(s)) {
+            return Ok(true);
+        }
+        let Some(record) = self.read_block_record(b)? else {
+            return Ok(false);
+        };
+        let stages = block_stages(b);
+        if !stages
+            .iter()
+            .all(|s| record.stages.iter().any(|x| x.name == *s))
+        {
+            return Ok(false);
+        }
+        for (name, entry) in &record.files {
+            let path = self.path_of(name)?;
+            let bytes = fs::read(&path).map_err(file_err(&path))?;
+            if bytes.len() as u64 != entry.bytes {
+                return Err(MapError::SizeMismatch {
+                    path,
+                    expected: entry.bytes,
+                    actual: bytes.len() as u64,
+                });
+            }
+            if sha256_hex(&bytes) != entry.sha256 {
+                return Err(MapError::Checksum { path });
+            }
+        }
+        self.manifest.files.extend(record.files);
+        for s in &stages {
+            if let Some(r) = record.stages.iter().find(|x| x.name == *s) {
+                self.manifest.stages.retain(|x| x.name != *s);
+                self.manifest.stages.push(r.clone());
+            }
+        }
+        if let Some(e) = self.manifest.blocks.get_mut(b) {
+            e.selected_dims = record.selected_dims;
+        }
+        Ok(true)
+    }
+
+    /// Records the feature dims selected for block `b` (in the manifest, or in the block's
+    /// record for a block job); persisted by the next [`MapDir::save`].
+    pub fn set_selected_dims(&mut self, b: usize, dims: Vec<usize>) {
+        match &mut self.block {
+            Some(r) if r.block == b => r.selected_dims = dims,
+            _ => {
+                if let Some(e) = self.manifest.blocks.get_mut(b) {
+                    e.selected_dims = dims;
+                }
+            }
+        }
+    }
+
+    /// Where the training curve of `stage` goes: `curves/<stage>.jsonl`, or under the block's
+    /// directory for a block job (`/` in the stage name becomes `_`).
+    pub fn curve_name(&self, stage: &str) -> String {
+        let file = format!("{}.jsonl", stage.replace('/', "_"));
+        match self.block() {
+            Some(b) => format!("blocks/{b}/curves/{file}"),
+            None => format!("curves/{file}"),
+        }
+    }
+
+    /// Checks that a block job may write `name`.
+    fn check_writable(&self, name: &str) -> Result<(), MapError> {
+        match self.block() {
+            Some(b) if !name.starts_with(&format!("blocks/{b}/")) => Err(MapError::OutsideBlock {
+                name: name.to_string(),
+                block: b,
+            }),
+            _ => Ok(()),
+        }
+    }
+
+    /// The file table written entries go to: the block record's for a block job, else the
+    /// manifest's.
+    fn files_mut(&mut self) -> &mut BTreeMap<String, FileEntry> {
+        match &mut self.block {
+            Some(r) => &mut r.files,
+            None => &mut self.manifest.files,
+        }
     }
 
     /// The map's root directory.
@@ -448,11 +703,12 @@ impl MapDir {
     /// the next [`MapDir::save`]).
     pub fn write_file(&mut self, name: &str, bytes: &[u8]) -> Result<(), MapError> {
         let path = self.path_of(name)?;
+        self.check_writable(name)?;
         if let Some(parent) = path.parent() {
             fs::create_dir_all(parent).map_err(io_err(parent))?;
         }
         write_atomic(&path, bytes).map_err(io_err(&path))?;
-        self.manifest.files.insert(
+        self.files_mut().insert(
             name.to_string(),
             FileEntry {
                 bytes: bytes.len() as u64,
@@ -466,8 +722,9 @@ impl MapDir {
     /// its size and checksum.
     pub fn register_file(&mut self, name: &str) -> Result<(), MapError> {
         let path = self.path_of(name)?;
+        self.check_writable(name)?;
         let bytes = fs::read(&path).map_err(file_err(&path))?;
-        self.manifest.files.insert(
+        self.files_mut().insert(
             name.to_string(),
             FileEntry {
                 bytes: bytes.len() as u64,
@@ -490,16 +747,26 @@ impl MapDir {
     pub fn read_file(&self, name: &str) -> Result<Vec<u8>, MapError> {
         let path = self.path_of(name)?;
         let entry = self
-            .manifest
-            .files
-            .get(name)
+            .block
+            .as_ref()
+            .and_then(|r| r.files.get(name))
+            .or_else(|| self.manifest.files.get(name))
             .ok_or_else(|| MapError::NotListed {
                 name: name.to_string(),
             })?;
-        let mut bytes = Vec::with_capacity(entry.bytes as usize);
-        fs::File::open(&path)
-            .and_then(|mut f| f.read_to_end(&mut bytes))
-            .map_err(file_err(&path))?;
+        // The file's real size bounds the read (never the manifest's claim), and a size that
+        // differs from the record is reported before anything is read.
+        let mut file = fs::File::open(&path).map_err(file_err(&path))?;
+        let actual = file.metadata().map_err(file_err(&path))?.len();
+        if actual != entry.bytes {
+            return Err(MapError::SizeMismatch {
+                path,
+                expected: entry.bytes,
+                actual,
+            });
+        }
+        let mut bytes = Vec::with_capacity(usize::try_from(actual).unwrap_or(0));
+        file.read_to_end(&mut bytes).map_err(file_err(&path))?;
         if bytes.len() as u64 != entry.bytes {
             return Err(MapError::SizeMismatch {
                 path,
@@ -569,13 +836,21 @@ impl MapDir {
     /// Whether a stage has completed (in this build or the one being resumed).
     pub fn stage_done(&self, name: &str) -> bool {
         self.manifest.stages.iter().any(|s| s.name == name)
+            || self
+                .block
+                .as_ref()
+                .is_some_and(|r| r.stages.iter().any(|s| s.name == name))
     }
 
     /// Records a completed stage and persists the manifest; a build killed after this call
     /// resumes after the stage.
     pub fn complete_stage(&mut self, name: &str, seconds: f64) -> Result<(), MapError> {
-        self.manifest.stages.retain(|s| s.name != name);
-        self.manifest.stages.push(StageRecord {
+        let stages = match &mut self.block {
+            Some(r) => &mut r.stages,
+            None => &mut self.manifest.stages,
+        };
+        stages.retain(|s| s.name != name);
+        stages.push(StageRecord {
             name: name.to_string(),
             seconds,
         });
@@ -606,8 +881,19 @@ impl MapDir {
         self.save()
     }
 
-    /// Writes the manifest atomically.
+    /// Writes the manifest atomically (a block job: the block's record).
     pub fn save(&self) -> Result<(), MapError> {
+        if let Some(r) = &self.block {
+            let path = self.root.join(block_record_file(r.block));
+            if let Some(parent) = path.parent() {
+                fs::create_dir_all(parent).map_err(io_err(parent))?;
+            }
+            let text = serde_json::to_vec_pretty(r).map_err(|e| MapError::BadBlockRecord {
+                path: path.clone(),
+                message: e.to_string(),
+            })?;
+            return write_atomic(&path, &text).map_err(io_err(&path));
+        }
         let path = self.root.join(MANIFEST_FILE);
         let text = serde_json::to_vec_pretty(&self.manifest).map_err(|e| MapError::Malformed {
             path: path.clone(),
@@ -719,6 +1005,131 @@ mod tests {
         let p = problems(&map);
         assert_eq!(p.len(), 1, "{p:?}");
         assert!(p[0].contains("checksum mismatch"), "{p:?}");
+    }
+
+    /// A map with `blocks` blocks and its partition stage done, as the plan step leaves it.
+    fn planned(dir: &Path, blocks: usize) -> MapDir {
+        let mut map = MapDir::create_or_resume(dir, serde_json::json!({})).unwrap();
+        map.manifest_mut().blocks = (0..blocks)
+            .map(|id| BlockEntry {
+                id,
+                bounds_min: [0.0; 3],
+                bounds_max: [1.0; 3],
+                num_poses: 1,
+                selected_dims: Vec::new(),
+            })
+            .collect();
+        map.write_file("partition.json", b"{}").unwrap();
+        map.complete_stage("partition", 0.0).unwrap();
+        map
+    }
+
+    #[test]
+    fn block_jobs_record_in_their_block_and_finish_merges() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut map = planned(dir.path(), 2);
+        let manifest_before = fs::read(dir.path().join(MANIFEST_FILE)).unwrap();
+
+        // Block 1's job: its files and stages go to its record, never to the manifest.
+        let mut job = MapDir::open_block(dir.path(), 1).unwrap();
+        assert_eq!(job.block(), Some(1));
+        job.write_file("blocks/1/model.safetensors", b"w").unwrap();
+        job.complete_stage("nerf/1", 1.0).unwrap();
+        let e = job.write_file("blocks/0/x", b"x").unwrap_err();
+        assert!(matches!(e, MapError::OutsideBlock { block: 1, .. }), "{e}");
+        assert!(job.write_file("confidence.json", b"x").is_err());
+        assert_eq!(job.curve_name("nerf/1"), "blocks/1/curves/nerf_1.jsonl");
+        assert_eq!(
+            fs::read(dir.path().join(MANIFEST_FILE)).unwrap(),
+            manifest_before
+        );
+        // A killed job rerun resumes from its record.
+        let mut job = MapDir::open_block(dir.path(), 1).unwrap();
+        assert!(job.stage_done("nerf/1"));
+        assert_eq!(job.read_file("blocks/1/model.safetensors").unwrap(), b"w");
+        assert!(!map.block_done(1).unwrap());
+        assert!(!map.merge_block(1).unwrap(), "an unfinished block merged");
+        for s in ["pairs/1", "encoder/1", "select/1"] {
+            job.complete_stage(s, 0.5).unwrap();
+        }
+        job.set_selected_dims(1, vec![3, 4]);
+        job.save().unwrap();
+        assert!(map.block_done(1).unwrap());
+        assert!(!map.block_done(0).unwrap());
+        assert!(matches!(
+            MapDir::open_block(dir.path(), 2),
+            Err(MapError::NoSuchBlock {
+                block: 2,
+                blocks: 2
+            })
+        ));
+
+        // Finish: the record merges; a file changed after its job fails the merge.
+        assert!(map.merge_block(1).unwrap());
+        assert!(map.stage_done("select/1"));
+        assert_eq!(map.manifest().blocks[1].selected_dims, vec![3, 4]);
+        assert!(
+            map.manifest()
+                .files
+                .contains_key("blocks/1/model.safetensors")
+        );
+        fs::write(dir.path().join("blocks/1/model.safetensors"), b"v").unwrap();
+        let mut fresh = MapDir::open(dir.path()).unwrap();
+        assert!(matches!(
+            fresh.merge_block(1),
+            Err(MapError::Checksum { .. })
+        ));
+    }
+
+    #[test]
+    fn a_malformed_block_record_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let map = planned(dir.path(), 2);
+        fs::create_dir_all(dir.path().join("blocks/0")).unwrap();
+        let path = dir.path().join(block_record_file(0));
+        for (text, expect) in [
+            ("[", "malformed block record"),
+            (
+                r#"{"format":"matloc-block","version":1,"block":1}"#,
+                "`block` is 1, expected 0",
+            ),
+            (
+                r#"{"format":"matloc-block","version":9,"block":0}"#,
+                "`version` 9",
+            ),
+            (
+                r#"{"format":"matloc-block","version":1,"block":0,
+                    "files":{"blocks/1/x":{"bytes":1,"sha256":"0"}}}"#,
+                "outside blocks/0/",
+            ),
+        ] {
+            fs::write(&path, text).unwrap();
+            let e = map.read_block_record(0).unwrap_err().to_string();
+            assert!(e.contains(expect) && e.contains("block.json"), "{e}");
+        }
+    }
+
+    #[test]
+    fn version_1_maps_load_and_other_versions_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut v = serde_json::to_value(Manifest::new(serde_json::json!({}))).unwrap();
+        v["version"] = serde_json::json!(1);
+        fs::write(dir.path().join(MANIFEST_FILE), v.to_string()).unwrap();
+        assert_eq!(MapDir::open(dir.path()).unwrap().manifest().version, 1);
+        // Resumed, it is written in this build's version.
+        let map = MapDir::create_or_resume(dir.path(), serde_json::json!({})).unwrap();
+        map.save().unwrap();
+        assert_eq!(
+            MapDir::open(dir.path()).unwrap().manifest().version,
+            MANIFEST_VERSION
+        );
+        v["version"] = serde_json::json!(0);
+        fs::write(dir.path().join(MANIFEST_FILE), v.to_string()).unwrap();
+        let e = MapDir::open(dir.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("map format version 0, this build reads versions 1 to 2"),
+            "{e}"
+        );
     }
 
     #[test]

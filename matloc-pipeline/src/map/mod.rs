@@ -7,5 +7,5 @@ pub mod manifest;
 
 pub use load::{LoadedBlocks, LoadedMap, MapBlock};
 pub use manifest::{
-    BlockEntry, FileEntry, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,
+    BlockEntry, BlockRecord, FileEntry, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,
 };
