@@ -19,6 +19,7 @@ mod plot;
 mod pose_formats;
 mod progress;
 mod queries;
+mod serve_cmd;
 mod split_args;
 mod synth_cmd;
 
@@ -52,28 +53,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Synthesise a dataset of the procedural aerial world (nerfstudio layout).
-    Synth {
-        /// Preset: tiny, small, rubble or building.
-        #[arg(long, default_value = "small")]
-        preset: String,
-        /// Output directory (created; an existing dataset there is replaced).
-        #[arg(long)]
-        out: PathBuf,
-        /// World and capture seed (default: the preset's).
-        #[arg(long)]
-        seed: Option<u64>,
-        /// Image width in pixels (height by the preset's aspect, same field of view): renders
-        /// the preset's survey at another resolution.
-        #[arg(long)]
-        width: Option<u32>,
-        /// Write no depth maps (as real data comes).
-        #[arg(long)]
-        no_depth: bool,
-        /// Also write the sparse point cloud real data would have: a COLMAP model with
-        /// points3D and tracks in OUT/sparse/0 and nerfstudio's OUT/sparse_pc.ply.
-        #[arg(long)]
-        points: bool,
-    },
+    Synth(synth_cmd::SynthArgs),
     /// Inspect datasets.
     Dataset {
         #[command(subcommand)]
@@ -98,6 +78,8 @@ enum Command {
     /// Localize query images against a map; write their poses (JSON lines, hloc, TUM, COLMAP,
     /// nerfstudio).
     Localize(localize_cmd::LocalizeArgs),
+    /// Serve localization over HTTP: POST /v1/localize, GET /healthz, GET /metrics.
+    Serve(serve_cmd::ServeArgs),
     /// Localize a dataset's test views with each method; write a report with tables and plots.
     Eval(eval_cmd::EvalArgs),
     /// Synthesise the `small` world, build its map, evaluate every method, write the report.
@@ -132,20 +114,7 @@ fn main() -> ExitCode {
         return ExitCode::FAILURE;
     }
     let result = match cli.command {
-        Command::Synth {
-            preset,
-            out,
-            seed,
-            width,
-            no_depth,
-            points,
-        } => {
-            let output = matloc_synth::SynthOutput {
-                depth: !no_depth,
-                points,
-            };
-            synth_cmd::run(&preset, &out, seed, width, &output, cli.quiet)
-        }
+        Command::Synth(args) => synth_cmd::run(&args, cli.quiet),
         Command::Dataset {
             command: DatasetCommand::Info { path, json, deep },
         } => dataset_cmd::info(&path, json, deep),
@@ -158,6 +127,7 @@ fn main() -> ExitCode {
         Command::Match(args) => match_cmd::run(&args, cli.quiet),
         Command::Map { command } => map_cmd::run(&command, cli.quiet),
         Command::Localize(args) => localize_cmd::run(&args),
+        Command::Serve(args) => serve_cmd::run(&args),
         Command::Eval(args) => {
             eval_cmd::run(&args, cli.quiet).and_then(|p| outln!("report: {}", p.display()))
         }

@@ -6,14 +6,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::ValueEnum;
-use matloc_core::metrics::{rotation_error_deg, translation_error_m};
-use matloc_core::pose::{camera_center, colmap_from_cam_from_world};
+use matloc_core::pose::colmap_from_cam_from_world;
 use matloc_core::{Camera, Pose};
 use matloc_data::colmap::{ColmapCamera, ColmapFormat, ColmapImage, ColmapModel, write_colmap};
 use matloc_data::dataset::{Dataset, Frame, SceneMetadata, Split};
 use matloc_data::nerfstudio::{applied_transform_pose, write_nerfstudio};
 use matloc_pipeline::methods::QueryResult;
-use serde_json::{Value, json};
+use matloc_serve::record::{error_record, localization_record};
+use serde_json::Value;
 
 /// A pose output format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -218,53 +218,18 @@ fn qvec_tvec(pose: &Pose) -> ([f64; 4], [f64; 3]) {
     colmap_from_cam_from_world(pose)
 }
 
-/// The JSON record of one query (schema in `matloc-cli/README.md`).
+/// The JSON record of one query (schema in `matloc-cli/README.md`; built by
+/// [`matloc_serve::record`], which `matloc serve` answers with too).
 pub fn jsonl_record(record: &QueryRecord, world: &OutputWorld) -> Result<Value> {
-    let l = match record {
-        QueryRecord::Failed { name, error, .. } => {
-            return Ok(json!({"name": name, "error": error}));
-        }
-        QueryRecord::Done(l) => l,
-    };
-    let r = &l.result;
-    let mut v = serde_json::to_value(r)?;
-    let obj = v
-        .as_object_mut()
-        .context("a result serialises to an object")?;
-    obj.remove("cam_from_world");
-    let pose = r.cam_from_world.map(|p| world.pose(&p));
-    let (q, t) = pose.as_ref().map(qvec_tvec).unzip();
-    obj.insert("qvec_wxyz".into(), json!(q));
-    obj.insert("tvec".into(), json!(t));
-    let center: Option<[f64; 3]> = pose.map(|p| camera_center(&p).coords.into());
-    obj.insert("camera_center".into(), json!(center));
-    obj.insert("world".into(), json!(world.name()));
-    if let Some(Value::Array(hyps)) = obj.get_mut("hypotheses") {
-        for (hv, h) in hyps.iter_mut().zip(&r.hypotheses) {
-            if let Some(ho) = hv.as_object_mut() {
-                ho.remove("coarse_cam_from_world");
-                let (q, t) = qvec_tvec(&world.pose(&h.coarse_cam_from_world));
-                ho.insert("coarse_qvec_wxyz".into(), json!(q));
-                ho.insert("coarse_tvec".into(), json!(t));
-            }
-        }
+    match record {
+        QueryRecord::Failed { name, error, .. } => Ok(error_record(name, error)),
+        QueryRecord::Done(l) => Ok(localization_record(
+            &l.result,
+            world.name(),
+            &|p| world.pose(p),
+            l.cam_from_world_gt.as_ref(),
+        )?),
     }
-    if let Some(gt) = &l.cam_from_world_gt {
-        let (q, t) = qvec_tvec(&world.pose(gt));
-        obj.insert("gt_qvec_wxyz".into(), json!(q));
-        obj.insert("gt_tvec".into(), json!(t));
-        if let Some(est) = &r.cam_from_world {
-            obj.insert(
-                "error_translation_m".into(),
-                json!(translation_error_m(est, gt)),
-            );
-            obj.insert(
-                "error_rotation_deg".into(),
-                json!(rotation_error_deg(est, gt)),
-            );
-        }
-    }
-    Ok(v)
 }
 
 /// The TUM timestamp of a query: its image's file stem when that is a number (TUM RGB-D names
@@ -461,10 +426,11 @@ pub fn summary(records: &[QueryRecord]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use matloc_core::pose::cam_from_world_from_colmap;
+    use matloc_core::pose::{cam_from_world_from_colmap, camera_center};
     use matloc_data::nerfstudio::{cam_from_world_from_original, read_nerfstudio};
     use matloc_pipeline::methods::Method;
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
+    use serde_json::json;
 
     fn pose(i: usize) -> Pose {
         let a = 0.3 + i as f64;

@@ -1,17 +1,18 @@
 //! Query input: hloc's query list with intrinsics (`NAME MODEL WIDTH HEIGHT PARAMS...`), image
 //! paths with intrinsics from a JSON file, a dataset or the map, and loading one query at the
 //! map's resolution. A problem with one query is kept with that query, so a batch goes on.
+//! Camera models and resizing are `matloc_serve`'s ([`matloc_serve::camera`],
+//! [`matloc_serve::query`]), so `matloc serve` reads queries the same way.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
-use matloc_core::{Camera, Distortion, Image, Pose};
-use matloc_data::colmap::{ColmapCamera, ColmapCameraModel};
+use anyhow::{Context, Result};
+use matloc_core::{Camera, Image, Pose};
 use matloc_data::dataset::Frame;
 use matloc_data::{Dataset, Split};
 use matloc_pipeline::LoadedMap;
-use serde::Deserialize;
+use matloc_serve::camera::{colmap_camera, colmap_model, parse_camera_json};
 
 /// One query ready to localize.
 pub struct Query {
@@ -89,15 +90,8 @@ fn parse_list_camera(line: &str) -> Result<Camera, String> {
             fields.len()
         ));
     }
-    let model_name = fields[1].to_ascii_uppercase();
-    let model = ColmapCameraModel::from_name(&model_name).map_err(|desc| {
-        let supported = ColmapCameraModel::ALL.map(|m| m.name()).join(", ");
-        if desc.starts_with("unknown") {
-            format!("camera model {model_name} is not a COLMAP model (supported: {supported})")
-        } else {
-            format!("camera model {model_name} is not supported (supported: {supported})")
-        }
-    })?;
+    // The model first: an unsupported one is named whatever its parameters.
+    colmap_model(fields[1]).map_err(|e| e.to_string())?;
     let size = |field: &str, what: &str| -> Result<u32, String> {
         field
             .parse::<u32>()
@@ -114,23 +108,7 @@ fn parse_list_camera(line: &str) -> Result<Camera, String> {
                 .map_err(|_| format!("parameter `{p}` is not a number"))
         })
         .collect::<Result<Vec<f64>, String>>()?;
-    if params.len() != model.num_params() {
-        return Err(format!(
-            "{} takes {} parameters, got {}",
-            model.name(),
-            model.num_params(),
-            params.len()
-        ));
-    }
-    ColmapCamera {
-        id: 0,
-        model,
-        width,
-        height,
-        params,
-    }
-    .to_camera()
-    .map_err(|e| format!("invalid {} camera: {e}", model.name()))
+    colmap_camera(fields[1], width, height, &params).map_err(|e| e.to_string())
 }
 
 /// Query specs for image paths named on the command line. The camera comes from the image's
@@ -231,38 +209,6 @@ pub fn load_query(spec: &QuerySpec, target: Option<&Camera>) -> Result<Query> {
     })
 }
 
-#[derive(Deserialize)]
-struct NerfstudioIntrinsics {
-    w: u32,
-    h: u32,
-    fl_x: f64,
-    fl_y: f64,
-    cx: f64,
-    cy: f64,
-    #[serde(default)]
-    k1: f64,
-    #[serde(default)]
-    k2: f64,
-    #[serde(default)]
-    p1: f64,
-    #[serde(default)]
-    p2: f64,
-    #[serde(default)]
-    k3: f64,
-    #[serde(default)]
-    k4: f64,
-}
-
-/// nerfstudio `camera_model` values read as pinhole + Brown–Conrady (as the transforms.json
-/// reader does); every other model (fisheye, equirectangular) is rejected by name.
-const NERFSTUDIO_MODELS: [&str; 5] = [
-    "PINHOLE",
-    "SIMPLE_PINHOLE",
-    "OPENCV",
-    "SIMPLE_RADIAL",
-    "RADIAL",
-];
-
 /// Reads an intrinsics file (nerfstudio keys with optional `camera_model`, or a matloc camera).
 pub fn read_intrinsics(path: &Path) -> Result<Camera> {
     let text =
@@ -270,92 +216,28 @@ pub fn read_intrinsics(path: &Path) -> Result<Camera> {
     parse_intrinsics(&text).with_context(|| format!("{}: invalid intrinsics", path.display()))
 }
 
-/// Parses intrinsics JSON (see [`read_intrinsics`]).
+/// Parses intrinsics JSON (see [`read_intrinsics`]; COLMAP `model` + `params` objects are
+/// read too).
 fn parse_intrinsics(text: &str) -> Result<Camera> {
-    let value: serde_json::Value = serde_json::from_str(text).context("not valid JSON")?;
-    if let Some(model) = value.get("camera_model") {
-        let model = model
-            .as_str()
-            .context("camera_model: expected a string")?
-            .to_ascii_uppercase();
-        if !NERFSTUDIO_MODELS.contains(&model.as_str()) {
-            bail!(
-                "camera_model {model} is not supported (supported: {})",
-                NERFSTUDIO_MODELS.join(", ")
-            );
-        }
-    }
-    let camera = if let Ok(n) = serde_json::from_value::<NerfstudioIntrinsics>(value.clone()) {
-        if n.k4 != 0.0 {
-            bail!("k4 (fisheye / rational model) is not supported; use OPENCV with k1 k2 p1 p2 k3");
-        }
-        Camera {
-            width: n.w,
-            height: n.h,
-            fx: n.fl_x,
-            fy: n.fl_y,
-            cx: n.cx,
-            cy: n.cy,
-            distortion: Distortion {
-                k1: n.k1,
-                k2: n.k2,
-                p1: n.p1,
-                p2: n.p2,
-                k3: n.k3,
-            },
-        }
-    } else {
-        serde_json::from_value::<Camera>(value).context(
-            "expected nerfstudio intrinsics (w, h, fl_x, fl_y, cx, cy) or a matloc camera (width, height, fx, fy, cx, cy)",
-        )?
-    };
-    camera.validate()?;
-    Ok(camera)
+    Ok(parse_camera_json(text)?)
 }
 
-/// `camera` for an image of `w`×`h` pixels: unchanged at its own size, rescaled when the image
-/// is a uniformly scaled copy (e.g. an `images_4/` folder), an error when the aspect differs.
+/// `camera` for an image of `w`×`h` pixels (see [`matloc_serve::query::fit_to_image`]).
 fn fit_to_image(camera: Camera, w: u32, h: u32, name: &str) -> Result<Camera> {
-    if (w, h) == (camera.width, camera.height) {
-        return Ok(camera);
-    }
-    camera.rescaled(w, h).with_context(|| {
-        format!(
-            "{name}: the image is {w}×{h} but the intrinsics are for {}×{}",
-            camera.width, camera.height
-        )
-    })
+    Ok(matloc_serve::query::fit_to_image(camera, w, h, name)?)
 }
 
-/// Brings a query to the map's image size when it differs (same aspect ratio; the pose does
-/// not depend on resolution, and the encoder was trained at the map's size).
+/// Brings a query to the map's image size when it differs (see
+/// [`matloc_serve::query::to_map_resolution`]).
 pub fn to_map_resolution(
     image: Image<f32>,
     camera: Camera,
     map_camera: Option<&Camera>,
     name: &str,
 ) -> Result<(Image<f32>, Camera)> {
-    let (w, h, c) = image.shape();
-    if c != 3 {
-        bail!("{name}: expected an RGB image, got {c} channels");
-    }
-    let camera = fit_to_image(camera, w as u32, h as u32, name)?;
-    let Some(target) = map_camera else {
-        return Ok((image, camera));
-    };
-    if (target.width, target.height) == (camera.width, camera.height) {
-        return Ok((image, camera));
-    }
-    let rescaled = camera
-        .rescaled(target.width, target.height)
-        .with_context(|| {
-            format!(
-                "{name}: a {w}×{h} query cannot be brought to the map's {}×{} images (aspect ratio differs)",
-                target.width, target.height
-            )
-        })?;
-    let resized = matloc_place::resize_area(&image, target.width as usize, target.height as usize);
-    Ok((resized, rescaled))
+    Ok(matloc_serve::query::to_map_resolution(
+        image, camera, map_camera, name,
+    )?)
 }
 
 /// The test queries of a dataset.

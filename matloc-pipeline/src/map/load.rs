@@ -4,16 +4,25 @@
 //! [`NerfMapComponents`] reads this crate's own map format, and another implementation can
 //! serve the same map directory with other renderers, encoders, matchers, place predictors or
 //! solvers ([`LoadedMap::open_with`]).
+//!
+//! A process can load a subset of the blocks ([`LoadedMap::open_blocks`]): the others keep
+//! their place (block ids stay the map's) as [`MapBlock::unserved`] stand-ins that hold no
+//! model, and a query whose best place hypothesis falls in one of them is tried on that
+//! hypothesis only, which fails naming the block. That is what lets a large map be split over
+//! processes by block, each answering the queries the place predictor sends to its blocks.
 
 use std::path::Path;
 use std::sync::Arc;
 
-use matloc_core::Camera;
+use matloc_core::{Camera, Image, Pose};
 use matloc_encoder::QueryEncoder;
 use matloc_match::nerf_view::NerfViewRenderer;
-use matloc_match::{FeatureStats, Matcher, MnnConfig, MnnMatcher, ViewRenderer};
+use matloc_match::{
+    FeatureStats, Match2d3d, MatchError, Matcher, MnnConfig, MnnMatcher, QueryFeatures,
+    RenderFailure, RenderedPoints, RenderedView, ViewRenderer,
+};
 use matloc_partition::Partition;
-use matloc_place::{PlaceModel, PlacePredictor};
+use matloc_place::{PlaceError, PlaceHypothesis, PlaceModel, PlacePredictor};
 use matloc_pnp::{LoRansacPnp, PoseSolver};
 use matloc_render::NerfModel;
 
@@ -108,7 +117,7 @@ pub trait MapComponents {
         &self,
         map: &MapDir,
         config: &MapConfig,
-    ) -> Result<Box<dyn PlacePredictor>, PipelineError>;
+    ) -> Result<Box<dyn PlacePredictor + Send + Sync>, PipelineError>;
     /// The pose solver with the map's options.
     fn solver(&self, options: &LocalizeOptions) -> Box<dyn PoseSolver + Send + Sync>;
 }
@@ -155,7 +164,7 @@ impl MapComponents for NerfMapComponents {
         &self,
         map: &MapDir,
         config: &MapConfig,
-    ) -> Result<Box<dyn PlacePredictor>, PipelineError> {
+    ) -> Result<Box<dyn PlacePredictor + Send + Sync>, PipelineError> {
         map.read_file(&format!("{PLACE_DIR}/{}", matloc_place::MODEL_WEIGHTS))?;
         let mut place = PlaceModel::load(&map.path_of(PLACE_DIR)?)?;
         config.place.configure(&mut place);
@@ -182,6 +191,100 @@ pub struct MapBlock {
     pub dims: Vec<usize>,
     /// Selected dims matched on, when fewer than `dims`.
     pub match_dims: Option<Vec<usize>>,
+    /// Whether this process serves the block (`false`: a [`MapBlock::unserved`] stand-in).
+    pub served: bool,
+}
+
+/// A block that is not loaded ([`LoadedMap::open_blocks`]): it renders nothing (the
+/// localizer records the hypothesis as failed with a message naming the block and goes on),
+/// encodes to an empty map and matches nothing.
+struct UnservedBlock {
+    block: usize,
+}
+
+impl UnservedBlock {
+    fn message(&self) -> String {
+        format!("block {} is not served by this process", self.block)
+    }
+}
+
+impl ViewRenderer for UnservedBlock {
+    fn num_features(&self) -> usize {
+        0
+    }
+
+    fn describe(&self) -> String {
+        self.message()
+    }
+
+    fn render_view(
+        &self,
+        _camera: &Camera,
+        _cam_from_world: &Pose,
+        _stride: u32,
+        _dims: &[usize],
+    ) -> Result<RenderedView, RenderFailure> {
+        Err(self.message().into())
+    }
+}
+
+impl QueryFeatureEncoder for UnservedBlock {
+    fn dims(&self) -> &[usize] {
+        &[]
+    }
+
+    fn stride(&self) -> u32 {
+        1
+    }
+
+    fn encode(&self, _image: &Image<f32>) -> Result<matloc_core::FeatureMap, PipelineError> {
+        Ok(Image::new(0, 0, 0))
+    }
+
+    fn stats(&self) -> Option<&FeatureStats> {
+        None
+    }
+}
+
+impl Matcher for UnservedBlock {
+    fn match_features(
+        &self,
+        _query: &QueryFeatures,
+        _map: &RenderedPoints,
+        _selection: Option<&[usize]>,
+    ) -> Result<Vec<Match2d3d>, MatchError> {
+        Ok(Vec::new())
+    }
+}
+
+/// The map's place predictor in a process that serves some blocks: when the best hypothesis
+/// falls in a block it does not serve, only that hypothesis is returned, so the localizer
+/// refuses the query at once (naming the block) instead of trying lower-ranked places that
+/// another process may serve better.
+struct ServedPlace {
+    inner: Box<dyn PlacePredictor + Send + Sync>,
+    served: Vec<bool>,
+}
+
+impl PlacePredictor for ServedPlace {
+    fn predict(
+        &self,
+        image: &Image<f32>,
+        camera: &Camera,
+        k: usize,
+    ) -> Result<Vec<PlaceHypothesis>, PlaceError> {
+        let mut hyps = self.inner.predict(image, camera, k)?;
+        if let Some(first) = hyps.first()
+            && !self
+                .served
+                .get(first.block.unwrap_or(0))
+                .copied()
+                .unwrap_or(false)
+        {
+            hyps.truncate(1);
+        }
+        Ok(hyps)
+    }
 }
 
 /// The MNN matcher of a block for matching on `dims`: the encoder's feature statistics
@@ -231,7 +334,22 @@ impl MapBlock {
             matcher,
             dims,
             match_dims,
+            served: true,
         })
+    }
+
+    /// The stand-in of block `b` when this process does not serve it: no model is loaded;
+    /// rendering it fails with "block `b` is not served by this process".
+    pub fn unserved(b: usize) -> Self {
+        MapBlock {
+            renderer: Arc::new(UnservedBlock { block: b }),
+            nerf: None,
+            encoder: Box::new(UnservedBlock { block: b }),
+            matcher: Box::new(UnservedBlock { block: b }),
+            dims: Vec::new(),
+            match_dims: None,
+            served: false,
+        }
     }
 
     /// This block as the localizer sees it.
@@ -259,8 +377,23 @@ impl LoadedBlocks {
         options: &LocalizeOptions,
         components: &dyn MapComponents,
     ) -> Result<Self, PipelineError> {
+        Self::load_served(map, n, None, options, components)
+    }
+
+    /// [`LoadedBlocks::load`] of the blocks in `served` only (`None`: all); the others are
+    /// [`MapBlock::unserved`] stand-ins, so block ids keep indexing the list.
+    pub fn load_served(
+        map: &MapDir,
+        n: usize,
+        served: Option<&[usize]>,
+        options: &LocalizeOptions,
+        components: &dyn MapComponents,
+    ) -> Result<Self, PipelineError> {
         let blocks = (0..n)
             .map(|b| {
+                if served.is_some_and(|s| !s.contains(&b)) {
+                    return Ok(MapBlock::unserved(b));
+                }
                 let sel: SelectionRecord = map.read_json(&selection_file(b))?;
                 MapBlock::load(map, b, options, components, |encoded| {
                     if options.refine_on_all_dims && sel.dims.len() < encoded.len() {
@@ -301,7 +434,7 @@ pub struct LoadedMap {
     /// Blocks.
     pub blocks: LoadedBlocks,
     /// Place predictor.
-    pub place: Box<dyn PlacePredictor>,
+    pub place: Box<dyn PlacePredictor + Send + Sync>,
     /// Pose solver.
     pub solver: Box<dyn PoseSolver + Send + Sync>,
     /// Calibrated confidence.
@@ -320,6 +453,24 @@ impl LoadedMap {
 
     /// [`LoadedMap::open`] with other components.
     pub fn open_with(root: &Path, components: &dyn MapComponents) -> Result<Self, PipelineError> {
+        Self::open_blocks_with(root, None, components)
+    }
+
+    /// [`LoadedMap::open`] loading only the blocks in `served` (`None`: all of them): the
+    /// other blocks' NeRFs and encoders stay on disk (their checksums are still verified), and
+    /// a query whose best place hypothesis is one of them is refused with that hypothesis's
+    /// failure "block `b` is not served by this process" ([`LoadedMap::serves`]). A block id
+    /// the partition does not have is [`PipelineError::Config`].
+    pub fn open_blocks(root: &Path, served: Option<&[usize]>) -> Result<Self, PipelineError> {
+        Self::open_blocks_with(root, served, &NerfMapComponents)
+    }
+
+    /// [`LoadedMap::open_blocks`] with other components.
+    pub fn open_blocks_with(
+        root: &Path,
+        served: Option<&[usize]>,
+        components: &dyn MapComponents,
+    ) -> Result<Self, PipelineError> {
         let dir = MapDir::open(root)?;
         dir.verify()?;
         let config: MapConfig = serde_json::from_value(dir.manifest().config.clone())
@@ -336,8 +487,19 @@ impl LoadedMap {
         let partition: Partition = dir.read_json(PARTITION_FILE)?;
         let n = partition.blocks.len();
         complete(n)?;
-        let blocks = LoadedBlocks::load(&dir, n, &config.localize, components)?;
-        let place = components.place(&dir, &config)?;
+        if let Some(bad) = served.and_then(|s| s.iter().find(|&&b| b >= n)) {
+            return Err(PipelineError::Config(format!(
+                "block {bad} is not in the map (its partition has blocks 0..{n})"
+            )));
+        }
+        let blocks = LoadedBlocks::load_served(&dir, n, served, &config.localize, components)?;
+        let mut place = components.place(&dir, &config)?;
+        if let Some(s) = served {
+            place = Box::new(ServedPlace {
+                inner: place,
+                served: (0..n).map(|b| s.contains(&b)).collect(),
+            });
+        }
         let solver = components.solver(&config.localize);
         let record: CalibrationRecord = dir.read_json(CONFIDENCE_FILE)?;
         Ok(Self {
@@ -380,6 +542,18 @@ impl LoadedMap {
     /// the resolution its query encoders were trained at.
     pub fn camera(&self) -> Option<Camera> {
         scene_camera(&self.dir)
+    }
+
+    /// Whether this process serves block `b` (it is in the map and was loaded).
+    pub fn serves(&self, b: usize) -> bool {
+        self.blocks.0.get(b).is_some_and(|m| m.served)
+    }
+
+    /// The blocks this process serves, in order.
+    pub fn served_blocks(&self) -> Vec<usize> {
+        (0..self.blocks.0.len())
+            .filter(|&b| self.serves(b))
+            .collect()
     }
 
     /// The NeRF of block `b`, when its renderer is one.

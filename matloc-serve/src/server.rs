@@ -1,0 +1,632 @@
+//! The HTTP server: routes, admission (bounded workers and queue), request parsing, the
+//! localizer on blocking threads, timeouts and graceful shutdown.
+//!
+//! A `POST /v1/localize` request goes through, in order: the shutdown check (503), the
+//! declared body size (413), admission (503 at once when `workers + queue` requests are
+//! already admitted, so memory never grows with load: only admitted requests read their
+//! bodies), body parsing (4xx naming the part or field), a free worker (queue), then decoding
+//! and localization on a blocking thread. Everything after admission runs under the timeout
+//! (504); a localization still running at the timeout keeps its worker until it ends, so the
+//! number of running localizations never exceeds `workers`.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Request, State};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use matloc_core::Camera;
+use matloc_pipeline::LoadedMap;
+use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use serde_json::{Value, json};
+use tokio::net::TcpListener;
+use tokio::sync::{Semaphore, oneshot};
+
+use crate::camera::parse_camera_json;
+use crate::metrics::{Metrics, Outcome};
+use crate::query::{DecodeLimits, decode_rgb, to_map_resolution};
+use crate::record::localization_record;
+
+/// Server settings.
+#[derive(Clone, Debug)]
+pub struct ServeConfig {
+    /// Address to listen on (port 0: any free port).
+    pub listen: SocketAddr,
+    /// Localizations run at once (blocking threads).
+    pub workers: usize,
+    /// Requests admitted beyond the running ones (reading their body or waiting for a
+    /// worker); more are answered 503 at once.
+    pub queue: usize,
+    /// Largest request body, bytes (413 beyond).
+    pub max_body_bytes: usize,
+    /// Time from admission to response (504 beyond).
+    pub timeout: Duration,
+    /// Limits on the decoded query image.
+    pub decode: DecodeLimits,
+}
+
+impl Default for ServeConfig {
+    /// `127.0.0.1:8080`, one worker per core, a queue of twice that, 16 MiB bodies, 30 s.
+    fn default() -> Self {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        ServeConfig {
+            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            workers: cores,
+            queue: 2 * cores,
+            max_body_bytes: 16 << 20,
+            timeout: Duration::from_secs(30),
+            decode: DecodeLimits::default(),
+        }
+    }
+}
+
+/// Errors of starting or running the server.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The settings cannot work.
+    #[error("{0}")]
+    Config(String),
+    /// Binding the listening socket failed.
+    #[error("listening on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// The async runtime or the server's socket failed.
+    #[error("server: {0}")]
+    Io(#[from] std::io::Error),
+    /// The server thread panicked (a bug).
+    #[error("the server thread panicked")]
+    Panicked,
+}
+
+/// The loaded map and the state every request shares.
+pub struct Service {
+    map: Arc<LoadedMap>,
+    config: ServeConfig,
+    metrics: Metrics,
+    /// Admitted requests: `workers + queue` permits.
+    admission: Arc<Semaphore>,
+    /// Running localizations: `workers` permits.
+    workers: Arc<Semaphore>,
+    draining: AtomicBool,
+    served: Vec<usize>,
+}
+
+impl Service {
+    /// The service over `map` with `config` (workers and queue at least 1 and 0).
+    pub fn new(map: Arc<LoadedMap>, config: ServeConfig) -> Result<Arc<Self>, ServeError> {
+        if config.workers == 0 {
+            return Err(ServeError::Config("--workers must be at least 1".into()));
+        }
+        if config.max_body_bytes == 0 {
+            return Err(ServeError::Config(
+                "--max-body-bytes must be positive".into(),
+            ));
+        }
+        let served = map.served_blocks();
+        Ok(Arc::new(Service {
+            admission: Arc::new(Semaphore::new(config.workers + config.queue)),
+            workers: Arc::new(Semaphore::new(config.workers)),
+            metrics: Metrics::default(),
+            draining: AtomicBool::new(false),
+            served,
+            map,
+            config,
+        }))
+    }
+
+    /// The metrics recorded so far.
+    pub fn metrics(&self) -> &Metrics {
+        &self.metrics
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &ServeConfig {
+        &self.config
+    }
+
+    /// Stops admitting localization requests (503) and reports unhealthy, ahead of shutdown.
+    pub fn drain(&self) {
+        self.draining.store(true, Ordering::SeqCst);
+    }
+}
+
+/// The routes: `POST /v1/localize`, `GET /healthz`, `GET /metrics`.
+pub fn router(service: Arc<Service>) -> Router {
+    let limit = service.config.max_body_bytes;
+    Router::new()
+        .route("/v1/localize", post(localize))
+        .route("/healthz", get(healthz))
+        .route("/metrics", get(metrics))
+        .fallback(not_found)
+        .layer(DefaultBodyLimit::max(limit))
+        .with_state(service)
+}
+
+/// Serves `service` on `listener` until `shutdown` completes, then stops accepting
+/// connections, refuses further localization requests with 503 and waits for those in flight.
+pub async fn serve(
+    listener: TcpListener,
+    service: Arc<Service>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServeError> {
+    let drain = service.clone();
+    axum::serve(listener, router(service))
+        .with_graceful_shutdown(async move {
+            shutdown.await;
+            drain.drain();
+            tracing::info!("shutting down: finishing the requests in flight");
+        })
+        .await?;
+    Ok(())
+}
+
+/// Completes on SIGINT (Ctrl-C) or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}
+
+/// Runs the server on the current thread until SIGINT or SIGTERM: binds `config.listen`,
+/// logs the address, serves, and returns once the requests in flight have finished.
+pub fn run(map: Arc<LoadedMap>, config: ServeConfig) -> Result<(), ServeError> {
+    let service = Service::new(map, config)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async move {
+        let addr = service.config.listen;
+        let listener = TcpListener::bind(addr)
+            .await
+            .map_err(|source| ServeError::Bind { addr, source })?;
+        tracing::info!(
+            addr = %listener.local_addr()?,
+            workers = service.config.workers,
+            queue = service.config.queue,
+            blocks = ?service.served,
+            "listening"
+        );
+        serve(listener, service, shutdown_signal()).await
+    })
+}
+
+/// A server on its own thread and runtime (tests, embedding): started by
+/// [`ServerHandle::start`], stopped gracefully by [`ServerHandle::shutdown`] or on drop.
+pub struct ServerHandle {
+    addr: SocketAddr,
+    service: Arc<Service>,
+    stop: Option<oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<Result<(), ServeError>>>,
+}
+
+impl ServerHandle {
+    /// Binds `config.listen` and serves `map` on a background thread.
+    pub fn start(map: Arc<LoadedMap>, config: ServeConfig) -> Result<Self, ServeError> {
+        let service = Service::new(map, config)?;
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        let addr = service.config.listen;
+        let listener = runtime
+            .block_on(TcpListener::bind(addr))
+            .map_err(|source| ServeError::Bind { addr, source })?;
+        let addr = listener.local_addr()?;
+        let (stop, stopped) = oneshot::channel::<()>();
+        let s = service.clone();
+        let thread = std::thread::Builder::new()
+            .name("matloc-serve".into())
+            .spawn(move || {
+                runtime.block_on(serve(listener, s, async move {
+                    let _ = stopped.await;
+                }))
+            })?;
+        Ok(ServerHandle {
+            addr,
+            service,
+            stop: Some(stop),
+            thread: Some(thread),
+        })
+    }
+
+    /// The address the server listens on.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// The shared state (metrics, settings).
+    pub fn service(&self) -> &Arc<Service> {
+        &self.service
+    }
+
+    /// Stops accepting, waits for the requests in flight, and joins the server thread.
+    pub fn shutdown(mut self) -> Result<(), ServeError> {
+        self.stop_and_join()
+    }
+
+    fn stop_and_join(&mut self) -> Result<(), ServeError> {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        match self.thread.take() {
+            Some(t) => t.join().map_err(|_| ServeError::Panicked)?,
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for ServerHandle {
+    fn drop(&mut self) {
+        let _ = self.stop_and_join();
+    }
+}
+
+/// An error response: `{"status": ..., "error": ..., "field": ...}`.
+struct ApiError {
+    status: StatusCode,
+    outcome: Outcome,
+    message: String,
+    field: Option<&'static str>,
+}
+
+impl ApiError {
+    fn bad(field: &'static str, message: impl Into<String>) -> Self {
+        ApiError {
+            status: StatusCode::BAD_REQUEST,
+            outcome: Outcome::BadRequest,
+            message: message.into(),
+            field: Some(field),
+        }
+    }
+
+    fn too_large(limit: usize) -> Self {
+        ApiError {
+            status: StatusCode::PAYLOAD_TOO_LARGE,
+            outcome: Outcome::PayloadTooLarge,
+            message: format!("the request body is larger than the {limit}-byte limit"),
+            field: Some("body"),
+        }
+    }
+
+    fn response(&self) -> Response {
+        let mut body = json!({"status": self.outcome.name(), "error": self.message});
+        if let Some(f) = self.field {
+            body["field"] = json!(f);
+        }
+        let mut r = (self.status, axum::Json(body)).into_response();
+        if self.status == StatusCode::SERVICE_UNAVAILABLE {
+            r.headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+        }
+        r
+    }
+}
+
+async fn not_found() -> Response {
+    (
+        StatusCode::NOT_FOUND,
+        axum::Json(json!({
+            "status": "not_found",
+            "error": "no such route (POST /v1/localize, GET /healthz, GET /metrics)"
+        })),
+    )
+        .into_response()
+}
+
+async fn healthz(State(s): State<Arc<Service>>) -> Response {
+    let (in_flight, queued) = s.metrics.gauges();
+    let draining = s.draining.load(Ordering::SeqCst);
+    let body = json!({
+        "status": if draining { "shutting_down" } else { "ok" },
+        "blocks": s.served,
+        "workers": s.config.workers,
+        "queue": s.config.queue,
+        "in_flight": in_flight,
+        "queued": queued,
+    });
+    let code = if draining {
+        StatusCode::SERVICE_UNAVAILABLE
+    } else {
+        StatusCode::OK
+    };
+    (code, axum::Json(body)).into_response()
+}
+
+async fn metrics(State(s): State<Arc<Service>>) -> Response {
+    (
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+        )],
+        s.metrics.render(s.config.workers, s.config.queue),
+    )
+        .into_response()
+}
+
+async fn localize(State(s): State<Arc<Service>>, request: Request) -> Response {
+    let start = Instant::now();
+    let (outcome, response) = match handle(&s, request, start).await {
+        Ok((outcome, body)) => (outcome, (StatusCode::OK, axum::Json(body)).into_response()),
+        Err(e) => {
+            if e.status.is_server_error() {
+                tracing::warn!(status = e.status.as_u16(), "{}", e.message);
+            } else {
+                tracing::debug!(status = e.status.as_u16(), "{}", e.message);
+            }
+            (e.outcome, e.response())
+        }
+    };
+    s.metrics.observe(outcome, start.elapsed());
+    response
+}
+
+/// The parts of a localization request.
+struct Parts {
+    name: String,
+    image: axum::body::Bytes,
+    camera: Camera,
+}
+
+async fn handle(
+    s: &Arc<Service>,
+    request: Request,
+    start: Instant,
+) -> Result<(Outcome, Value), ApiError> {
+    if s.draining.load(Ordering::SeqCst) {
+        return Err(ApiError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            outcome: Outcome::ShuttingDown,
+            message: "the server is shutting down".into(),
+            field: None,
+        });
+    }
+    let declared = request
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > s.config.max_body_bytes as u64) {
+        return Err(ApiError::too_large(s.config.max_body_bytes));
+    }
+    let content_type = request
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    if !content_type
+        .to_ascii_lowercase()
+        .starts_with("multipart/form-data")
+    {
+        return Err(ApiError {
+            status: StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            outcome: Outcome::BadRequest,
+            message: format!(
+                "content type {:?}: expected multipart/form-data with parts `image` (PNG/JPEG) and `camera` (JSON)",
+                content_type
+            ),
+            field: Some("content-type"),
+        });
+    }
+    let Ok(admitted) = s.admission.clone().try_acquire_owned() else {
+        return Err(ApiError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            outcome: Outcome::Overloaded,
+            message: format!(
+                "overloaded: {} workers busy and {} queued; retry later",
+                s.config.workers, s.config.queue
+            ),
+            field: None,
+        });
+    };
+    let timeout = s.config.timeout;
+    let work = async {
+        let queued = s.metrics.queued();
+        let parts = read_parts(s, request).await?;
+        let worker = s
+            .workers
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|_| ApiError {
+                status: StatusCode::SERVICE_UNAVAILABLE,
+                outcome: Outcome::ShuttingDown,
+                message: "the server is shutting down".into(),
+                field: None,
+            })?;
+        drop(queued);
+        let queue_s = start.elapsed().as_secs_f64();
+        let service = s.clone();
+        // The permits move into the blocking task: a localization still running after the
+        // timeout keeps its worker (and its place in the queue) until it ends.
+        let job = tokio::task::spawn_blocking(move || {
+            let _permits = (admitted, worker);
+            let _running = service.metrics.in_flight();
+            localize_parts(&service, parts, start, queue_s)
+        });
+        job.await.map_err(|_| ApiError {
+            status: StatusCode::INTERNAL_SERVER_ERROR,
+            outcome: Outcome::Error,
+            message: "the localization task failed".into(),
+            field: None,
+        })?
+    };
+    match tokio::time::timeout(timeout, work).await {
+        Ok(r) => r,
+        Err(_) => Err(ApiError {
+            status: StatusCode::GATEWAY_TIMEOUT,
+            outcome: Outcome::Timeout,
+            message: format!(
+                "no answer within the {:.1} s request timeout",
+                timeout.as_secs_f64()
+            ),
+            field: None,
+        }),
+    }
+}
+
+/// Reads the multipart body: `image` (required), `camera` (required, JSON) and `name`
+/// (optional, echoed in the record).
+async fn read_parts(s: &Arc<Service>, request: Request) -> Result<Parts, ApiError> {
+    let limit = s.config.max_body_bytes;
+    let multipart_error = |field: &'static str, e: axum::extract::multipart::MultipartError| {
+        if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+            ApiError::too_large(limit)
+        } else {
+            ApiError::bad(field, format!("part `{field}`: {}", e.body_text()))
+        }
+    };
+    let mut multipart = Multipart::from_request(request, &())
+        .await
+        .map_err(|e| ApiError {
+            status: StatusCode::BAD_REQUEST,
+            outcome: Outcome::BadRequest,
+            message: format!("multipart body: {}", e.body_text()),
+            field: Some("body"),
+        })?;
+    let (mut name, mut image, mut camera) = (None, None, None);
+    loop {
+        let field = match multipart.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) => return Err(multipart_error("body", e)),
+        };
+        match field.name().unwrap_or("") {
+            "image" => {
+                let bytes = field
+                    .bytes()
+                    .await
+                    .map_err(|e| multipart_error("image", e))?;
+                image = Some(bytes);
+            }
+            "camera" => {
+                let text = field
+                    .text()
+                    .await
+                    .map_err(|e| multipart_error("camera", e))?;
+                camera = Some(
+                    parse_camera_json(&text)
+                        .map_err(|e| ApiError::bad("camera", format!("part `camera`: {e}")))?,
+                );
+            }
+            "name" => {
+                let text = field.text().await.map_err(|e| multipart_error("name", e))?;
+                name = Some(text);
+            }
+            other => {
+                return Err(ApiError::bad(
+                    "body",
+                    format!("unknown part `{other}` (expected `image`, `camera`, `name`)"),
+                ));
+            }
+        }
+    }
+    let image = image.ok_or_else(|| ApiError::bad("image", "missing part `image`"))?;
+    if image.is_empty() {
+        return Err(ApiError::bad("image", "part `image` is empty"));
+    }
+    let camera = camera.ok_or_else(|| ApiError::bad("camera", "missing part `camera`"))?;
+    Ok(Parts {
+        name: name.unwrap_or_else(|| "query".into()),
+        image,
+        camera,
+    })
+}
+
+/// Decodes, brings the query to the map's resolution, localizes (on a blocking thread) and
+/// makes the response record.
+fn localize_parts(
+    s: &Service,
+    parts: Parts,
+    start: Instant,
+    queue_s: f64,
+) -> Result<(Outcome, Value), ApiError> {
+    let t = Instant::now();
+    let image = decode_rgb(&parts.image, s.config.decode)
+        .map_err(|e| ApiError::bad("image", format!("part `image`: {e}")))?;
+    drop(parts.image);
+    let (image, camera) =
+        to_map_resolution(image, parts.camera, s.map.camera().as_ref(), &parts.name)
+            .map_err(|e| ApiError::bad("camera", format!("part `camera`: {e}")))?;
+    let decode_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let result = localize_with(
+        &s.map,
+        Method::Matloc,
+        &parts.name,
+        &image,
+        &camera,
+        &MethodOptions::default(),
+    )
+    .map_err(|e| ApiError {
+        status: StatusCode::INTERNAL_SERVER_ERROR,
+        outcome: Outcome::Error,
+        message: format!("localizing {}: {e}", parts.name),
+        field: None,
+    })?;
+    let localize_s = t.elapsed().as_secs_f64();
+    let outside = result
+        .hypotheses
+        .first()
+        .map(|h| h.block)
+        .filter(|&b| !s.map.serves(b));
+    let outcome = match (result.localized, outside) {
+        (true, _) => Outcome::Localized,
+        (false, Some(_)) => Outcome::OutsideBlocks,
+        (false, None) => Outcome::Refused,
+    };
+    let mut record = localization_record(&result, "data", &|p| *p, None).map_err(|e| ApiError {
+        status: StatusCode::INTERNAL_SERVER_ERROR,
+        outcome: Outcome::Error,
+        message: format!("writing the record: {e}"),
+        field: None,
+    })?;
+    if let Value::Object(obj) = &mut record {
+        obj.insert("status".into(), json!(outcome.name()));
+        if let Some(b) = outside {
+            obj.insert("block".into(), json!(b));
+            obj.insert("served_blocks".into(), json!(s.served));
+        }
+        obj.insert(
+            "server_seconds".into(),
+            json!({
+                "queue": queue_s,
+                "decode": decode_s,
+                "localize": localize_s,
+                "total": start.elapsed().as_secs_f64(),
+            }),
+        );
+    }
+    tracing::debug!(
+        query = %parts.name,
+        status = outcome.name(),
+        seconds = start.elapsed().as_secs_f64(),
+        "query answered"
+    );
+    Ok((outcome, record))
+}
