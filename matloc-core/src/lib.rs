@@ -13,6 +13,7 @@ pub mod camera;
 pub mod fsutil;
 pub mod hash;
 pub mod image;
+pub mod limits;
 pub mod metrics;
 pub mod pose;
 pub mod subset;

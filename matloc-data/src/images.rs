@@ -97,6 +97,14 @@ pub enum ImageLoadError {
         /// Why it does not fit.
         reason: &'static str,
     },
+    /// Decoding the image would take more memory than the budget allows.
+    #[error("{path}: {source}")]
+    Limit {
+        /// The file.
+        path: PathBuf,
+        /// The limit and the request (boxed: it is large and rare).
+        source: Box<matloc_core::limits::LimitError>,
+    },
     /// A buffer with the wrong number of channels was given to a writer.
     #[error("{path}: expected a {expected}-channel image, got {actual} channels")]
     Channels {
@@ -167,8 +175,31 @@ fn regular_file(path: &Path) -> Result<(), ImageLoadError> {
     Ok(())
 }
 
+/// Bytes per pixel of a colour image while it is loaded: the decoded buffer (up to 16-bit
+/// RGBA), its RGB conversion and the float image.
+pub const DECODE_BYTES_PER_PIXEL: u64 = 8 + 6 + 12;
+
+/// The memory a `w × h` image takes while it is loaded.
+fn decode_request(w: u32, h: u32) -> matloc_core::limits::MemoryRequest {
+    matloc_core::limits::MemoryRequest {
+        what: "decoding an image",
+        count: u64::from(w) * u64::from(h),
+        unit: "pixels",
+        bytes_each: DECODE_BYTES_PER_PIXEL,
+        remedy: "use a smaller image file (`images.max_side` applies after decoding)",
+    }
+}
+
 fn decode(path: &Path) -> Result<DynamicImage, ImageLoadError> {
     regular_file(path)?;
+    // The header's dimensions decide the allocation: check them before decoding.
+    let (w, h) = image_size(path)?;
+    matloc_core::limits::check_memory(&decode_request(w, h)).map_err(|source| {
+        ImageLoadError::Limit {
+            path: path.to_path_buf(),
+            source: Box::new(source),
+        }
+    })?;
     let reader = image::ImageReader::open(path)
         .map_err(|e| io_error(path, e))?
         .with_guessed_format()
@@ -756,5 +787,62 @@ mod tests {
         let out = downscale_box(&img, 2);
         assert_eq!(out.shape(), (2, 1, 1));
         assert_eq!(out.data(), &[2.0, 6.0]);
+    }
+
+    /// A PNG with only a signature and an IHDR chunk claiming `w × h` RGB8 pixels.
+    fn png_header_only(w: u32, h: u32) -> Vec<u8> {
+        fn crc32(bytes: &[u8]) -> u32 {
+            let mut c = !0u32;
+            for &b in bytes {
+                c ^= u32::from(b);
+                for _ in 0..8 {
+                    c = if c & 1 != 0 {
+                        0xEDB8_8320 ^ (c >> 1)
+                    } else {
+                        c >> 1
+                    };
+                }
+            }
+            !c
+        }
+        let mut chunk = b"IHDR".to_vec();
+        chunk.extend_from_slice(&w.to_be_bytes());
+        chunk.extend_from_slice(&h.to_be_bytes());
+        chunk.extend_from_slice(&[8, 2, 0, 0, 0]);
+        let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+        out.extend_from_slice(&13u32.to_be_bytes());
+        out.extend_from_slice(&chunk);
+        out.extend_from_slice(&crc32(&chunk).to_be_bytes());
+        out
+    }
+
+    #[test]
+    fn an_image_larger_than_the_memory_budget_is_refused_before_decoding() {
+        use matloc_core::limits::{BudgetSource, MemoryBudget, check_against};
+        let budget = Some(MemoryBudget {
+            bytes: 1 << 30,
+            source: BudgetSource::Explicit,
+        });
+        assert!(check_against(&decode_request(4000, 3000), budget).is_ok());
+        let e = check_against(&decode_request(10_000, 10_000), budget)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("100000000 pixels") && e.contains("MATLOC_MEMORY_LIMIT"),
+            "{e}"
+        );
+        // A header past the codec's own limit is refused by the codec, from the header alone.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("huge.png");
+        fs::write(&path, png_header_only(0x7fff_ffff, 0x7fff_ffff)).unwrap();
+        let e = load_rgb(&path).unwrap_err();
+        assert!(matches!(e, ImageLoadError::Codec { .. }), "{e}");
+        assert!(e.to_string().contains("huge.png"), "{e}");
+        // A plausible header gets to the decoder, which finds the data missing.
+        fs::write(&path, png_header_only(64, 48)).unwrap();
+        assert!(matches!(
+            load_rgb(&path).unwrap_err(),
+            ImageLoadError::Codec { .. } | ImageLoadError::Io { .. }
+        ));
     }
 }

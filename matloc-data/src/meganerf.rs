@@ -246,7 +246,18 @@ fn metadata_files(dir: &Path) -> Result<Vec<PathBuf>, MegaNerfError> {
     for entry in fs::read_dir(dir).map_err(io_err)? {
         let path = entry.map_err(io_err)?.path();
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
-        if name.ends_with(".pt") && !name.starts_with('.') && path.is_file() {
+        if name.ends_with(".pt") && !name.starts_with('.') {
+            // A `.pt` entry that is not a file (a directory, a device, a dangling link) is a
+            // broken frame, not one to skip silently.
+            if !path.is_file() {
+                return Err(MegaNerfError::Io {
+                    path,
+                    source: std::io::Error::new(
+                        std::io::ErrorKind::InvalidInput,
+                        "not a regular file",
+                    ),
+                });
+            }
             files.push(path);
         }
     }

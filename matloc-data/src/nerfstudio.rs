@@ -70,6 +70,23 @@ impl fmt::Display for At {
     }
 }
 
+/// The `transforms.json` keys a camera error is about (`fl_x` for the camera's `fx`).
+fn ns_keys(e: &CameraError) -> &'static str {
+    match e {
+        CameraError::NonFinite { field, .. } | CameraError::NonPositiveFocal { field, .. } => {
+            match *field {
+                "fx" => "`fl_x`",
+                "fy" => "`fl_y`",
+                "cx" => "`cx`",
+                "cy" => "`cy`",
+                _ => "`k1` `k2` `k3` `p1` `p2`",
+            }
+        }
+        CameraError::EmptyImage { .. } => "`w` `h`",
+        _ => "`fl_x` `fl_y` `cx` `cy` `w` `h`",
+    }
+}
+
 /// Errors raised when reading or writing nerfstudio datasets.
 #[derive(Debug, Error)]
 pub enum NerfstudioError {
@@ -146,7 +163,7 @@ pub enum NerfstudioError {
         source: PoseError,
     },
     /// The intrinsics are invalid (non-finite, non-positive focal length, empty image).
-    #[error("{path}: {at}: invalid intrinsics: {source}")]
+    #[error("{path}: {at}: invalid intrinsics ({}): {source}", ns_keys(source))]
     BadCamera {
         /// The file.
         path: PathBuf,

@@ -484,6 +484,11 @@ pub enum Problem {
         /// Why.
         reason: String,
     },
+    /// The dataset's point cloud (COLMAP `points3D`, PLY) cannot be read.
+    UnreadablePoints {
+        /// Why, with the file.
+        reason: String,
+    },
     /// The depth map's aspect ratio differs from the intrinsics'.
     DepthSizeMismatch {
         /// Frame index.
@@ -556,6 +561,9 @@ impl fmt::Display for Problem {
                 "frame {frame}: cannot read depth {}: {reason}",
                 path.display()
             ),
+            Problem::UnreadablePoints { reason } => {
+                write!(f, "cannot read the point cloud: {reason}")
+            }
             Problem::DepthSizeMismatch {
                 frame,
                 path,
@@ -746,6 +754,12 @@ pub fn validate_deep(dataset: &Dataset) -> Vec<Problem> {
         })
         .collect();
     problems.extend(decoded);
+    // The point cloud a map build may take its surface from.
+    if let Err(e) = crate::points::read_points(dataset) {
+        problems.push(Problem::UnreadablePoints {
+            reason: e.to_string(),
+        });
+    }
     problems
 }
 

@@ -47,6 +47,9 @@ pub enum PartitionError {
         /// The loader's message.
         message: String,
     },
+    /// The sample points asked for do not fit in memory.
+    #[error("{0}")]
+    Limit(#[from] matloc_core::limits::LimitError),
     /// A configuration value is out of range.
     #[error("invalid partition setting `{field}`: {reason}")]
     InvalidConfig {

@@ -167,6 +167,30 @@ impl PoseSamples {
     }
 }
 
+/// Bytes one sample point takes: the point (3 × f64) and its voxel id in the occupancy.
+pub const SAMPLE_POINT_BYTES: u64 = 24 + 8;
+
+/// Most sample points a view of `camera` gives with `config` (every ray hitting a surface).
+pub fn max_points(camera: &Camera, config: &SampleConfig) -> u64 {
+    let stride = u64::from(config.pixel_stride.max(1));
+    let off = stride / 2;
+    let along = |n: u32| u64::from(n).saturating_sub(off).div_ceil(stride);
+    along(camera.width)
+        .saturating_mul(along(camera.height))
+        .saturating_mul(config.points_per_ray as u64 + 1)
+}
+
+/// The memory `points` sample points take.
+fn samples_request(what: &'static str, points: u64) -> matloc_core::limits::MemoryRequest {
+    matloc_core::limits::MemoryRequest {
+        what,
+        count: points,
+        unit: "sample points",
+        bytes_each: SAMPLE_POINT_BYTES,
+        remedy: "raise `samples.pixel_stride` or lower `samples.points_per_ray`",
+    }
+}
+
 /// True when every component of the pose is finite.
 pub(crate) fn pose_is_finite(p: &Pose) -> bool {
     p.translation.vector.iter().all(|v| v.is_finite())
@@ -185,6 +209,10 @@ pub fn sample_pose(
     if !pose_is_finite(cam_from_world) {
         return Err(PartitionError::NonFinitePose { index: id });
     }
+    matloc_core::limits::check_memory(&samples_request(
+        "partition samples of one view",
+        max_points(camera, config),
+    ))?;
     let world_from_cam = cam_from_world.inverse();
     let origin = camera_center(cam_from_world);
     let stride = config.pixel_stride as usize;
@@ -238,6 +266,13 @@ pub fn samples_from_dataset(
     progress: &(dyn Fn() + Sync),
 ) -> Result<Vec<PoseSamples>, PartitionError> {
     config.validate()?;
+    // Every view's samples are kept until the partition is made.
+    let total = indices
+        .iter()
+        .filter_map(|&i| dataset.frames.get(i))
+        .map(|f| max_points(&f.camera, config))
+        .fold(0u64, u64::saturating_add);
+    matloc_core::limits::check_memory(&samples_request("partition samples of all views", total))?;
     indices
         .par_iter()
         .map(|&index| {
@@ -344,5 +379,37 @@ mod tests {
         pose.translation.vector.x = f64::NAN;
         let e = sample_pose(7, &cam, &pose, &Plane(0.0), &SampleConfig::default()).unwrap_err();
         assert!(matches!(e, PartitionError::NonFinitePose { index: 7 }));
+    }
+
+    #[test]
+    fn samples_beyond_the_memory_budget_are_refused_before_sampling() {
+        use matloc_core::limits::{BudgetSource, MemoryBudget, check_against};
+        let cam = Camera::pinhole(4000, 3000, 3000.0, 3000.0, 2000.0, 1500.0).unwrap();
+        let cfg = SampleConfig::default();
+        // 500 × 375 rays, 9 points each.
+        assert_eq!(max_points(&cam, &cfg), 500 * 375 * 9);
+        let budget = Some(MemoryBudget {
+            bytes: 1 << 20,
+            source: BudgetSource::Explicit,
+        });
+        let e = check_against(
+            &samples_request("partition samples of one view", max_points(&cam, &cfg)),
+            budget,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("1687500 sample points") && e.contains("samples.pixel_stride"),
+            "{e}"
+        );
+        // A camera no memory holds the samples of is refused by `sample_pose` itself.
+        let huge = Camera::pinhole(u32::MAX, u32::MAX, 1e9, 1e9, 2e9, 2e9).unwrap();
+        let one = SampleConfig {
+            pixel_stride: 1,
+            points_per_ray: 1000,
+            ..cfg
+        };
+        let e = sample_pose(0, &huge, &Pose::identity(), &Plane(0.0), &one).unwrap_err();
+        assert!(matches!(e, PartitionError::Limit(_)), "{e}");
     }
 }

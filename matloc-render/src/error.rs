@@ -26,6 +26,9 @@ pub enum RenderError {
         /// What is wrong with it.
         reason: &'static str,
     },
+    /// A grid or a batch of rays does not fit in memory.
+    #[error("{0}")]
+    Limit(#[from] matloc_core::limits::LimitError),
     /// A configuration value is out of range.
     #[error("invalid render/train config: {field}: {reason}")]
     InvalidConfig {

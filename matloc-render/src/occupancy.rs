@@ -44,6 +44,21 @@ impl Default for OccupancyConfig {
     }
 }
 
+/// Bytes per cell: the density estimate (f32), the occupancy bit, and the estimate of one
+/// update (f32).
+pub const OCCUPANCY_CELL_BYTES: u64 = 9;
+
+/// The memory an occupancy grid of `cells` cells takes.
+fn grid_request(cells: u64) -> matloc_core::limits::MemoryRequest {
+    matloc_core::limits::MemoryRequest {
+        what: "the NeRF occupancy grid",
+        count: cells,
+        unit: "cells",
+        bytes_each: OCCUPANCY_CELL_BYTES,
+        remedy: "lower `train.occupancy.resolution` (in a map config: `nerf.model_overrides`)",
+    }
+}
+
 /// A density grid over the contracted cube with an occupancy bitfield, for empty-space
 /// skipping (instant-ngp style).
 ///
@@ -69,6 +84,7 @@ impl OccupancyGrid {
             });
         }
         let n = config.resolution.pow(3);
+        matloc_core::limits::check_memory(&grid_request(n as u64))?;
         Ok(Self {
             config,
             scene_box,
@@ -260,5 +276,45 @@ impl OccupancyGrid {
         let mut g = Self::new(config, scene_box)?;
         g.update(field, rng)?;
         Ok(g)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matloc_core::limits::{BudgetSource, MemoryBudget, check_against};
+
+    #[test]
+    fn a_training_batch_beyond_the_memory_budget_is_refused() {
+        let budget = Some(MemoryBudget {
+            bytes: 1 << 30,
+            source: BudgetSource::Explicit,
+        });
+        assert!(check_against(&crate::train::batch_request(4096, 48), budget).is_ok());
+        let e = check_against(&crate::train::batch_request(1 << 20, 64), budget)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("67108864 samples") && e.contains("train.batch_rays"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_grid_beyond_the_memory_budget_is_refused() {
+        let budget = Some(MemoryBudget {
+            bytes: 1 << 30,
+            source: BudgetSource::Explicit,
+        });
+        assert!(check_against(&grid_request(64u64.pow(3)), budget).is_ok());
+        let e = check_against(&grid_request(1024u64.pow(3)), budget)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("occupancy grid")
+                && e.contains("1073741824 cells")
+                && e.contains("train.occupancy.resolution"),
+            "{e}"
+        );
     }
 }

@@ -153,6 +153,22 @@ pub struct Trainer {
     cache: TrainCache,
 }
 
+/// Bytes per sample of a training batch, an upper estimate: position, direction and interval,
+/// the hash-grid encoding and MLP activations kept for the backward pass, and their gradients.
+pub const TRAIN_SAMPLE_BYTES: u64 = 1024;
+
+/// The memory a training batch of `rays` rays with up to `max_samples` samples each takes.
+pub fn batch_request(rays: u64, max_samples: u64) -> matloc_core::limits::MemoryRequest {
+    matloc_core::limits::MemoryRequest {
+        what: "a NeRF training batch",
+        count: rays.saturating_mul(max_samples),
+        unit: "samples",
+        bytes_each: TRAIN_SAMPLE_BYTES,
+        remedy: "lower `train.batch_rays` or `train.march.max_samples` (in a map config: \
+                 `nerf.model_overrides`)",
+    }
+}
+
 impl Trainer {
     /// Sets up optimiser and sampler state for `field`.
     pub fn new(field: NerfactoField, config: TrainConfig) -> Result<Self, RenderError> {
@@ -162,6 +178,10 @@ impl Trainer {
                 reason: "must be positive".into(),
             });
         }
+        matloc_core::limits::check_memory(&batch_request(
+            config.batch_rays as u64,
+            config.march.max_samples as u64,
+        ))?;
         let grid = match config.sampler {
             SamplerKind::Occupancy => Some(OccupancyGrid::new(
                 config.occupancy,

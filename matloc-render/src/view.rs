@@ -116,6 +116,34 @@ impl RenderedView {
     }
 }
 
+/// Bytes per ray of a rendered view besides its features: pixel position, ray, validity,
+/// near/far, and the rendered RGB, depth, accumulation, median and z-depth.
+pub const VIEW_BYTES_PER_RAY: u64 = 16 + 24 + 4 + 1 + 8 + 12 + 4 * 5;
+
+/// Rays a [`PixelSet`] of `camera` casts (no allocation).
+pub fn ray_count(camera: &Camera, pixels: &PixelSet) -> u64 {
+    match pixels {
+        PixelSet::Full => u64::from(camera.width) * u64::from(camera.height),
+        PixelSet::Grid { stride } => {
+            let s = u64::from((*stride).max(1));
+            (u64::from(camera.width) / s) * (u64::from(camera.height) / s)
+        }
+        PixelSet::List(list) => list.len() as u64,
+    }
+}
+
+/// The memory rendering `rays` rays with `dims` features takes (features twice: the
+/// renderer's output and the view's copy).
+pub fn view_request(rays: u64, dims: usize) -> matloc_core::limits::MemoryRequest {
+    matloc_core::limits::MemoryRequest {
+        what: "rendering a view",
+        count: rays,
+        unit: "rays",
+        bytes_each: VIEW_BYTES_PER_RAY + 8 * dims as u64,
+        remedy: "render at a coarser stride or a smaller camera (`images.max_side`, `localize.max_side`)",
+    }
+}
+
 /// The pixel positions and result-grid size of a [`PixelSet`] for `camera`.
 pub fn pixel_positions(
     camera: &Camera,
@@ -217,6 +245,10 @@ pub fn render_view(
     {
         return Err(RenderError::InvalidPose);
     }
+    matloc_core::limits::check_memory(&view_request(
+        ray_count(camera, pixels),
+        request.dims.len(),
+    ))?;
     let (pixels, width, height) = pixel_positions(camera, pixels)?;
     let cfg = model.config();
     let (mut rays, cos_axis, valid) =
@@ -273,4 +305,31 @@ pub fn render_view(
         dims: request.dims.clone(),
         features,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matloc_core::limits::{BudgetSource, MemoryBudget, check_against};
+
+    #[test]
+    fn a_view_beyond_the_memory_budget_is_refused() {
+        let budget = Some(MemoryBudget {
+            bytes: 1 << 30,
+            source: BudgetSource::Explicit,
+        });
+        let small = Camera::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0).unwrap();
+        let rays = ray_count(&small, &PixelSet::Grid { stride: 4 });
+        assert_eq!(rays, 160 * 120);
+        assert!(check_against(&view_request(rays, 47), budget).is_ok());
+        let huge = Camera::pinhole(100_000, 100_000, 5e4, 5e4, 5e4, 5e4).unwrap();
+        let rays = ray_count(&huge, &PixelSet::Full);
+        let e = check_against(&view_request(rays, 3), budget)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("rendering a view") && e.contains("10000000000 rays"),
+            "{e}"
+        );
+    }
 }

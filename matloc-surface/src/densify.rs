@@ -41,6 +41,21 @@ pub fn grid_size(camera: &Camera, max_side: usize) -> (usize, usize) {
     )
 }
 
+/// Bytes per cell while a map is densified: z-buffer (f32), fill distance (u32), a queue
+/// entry (usize) and the output depth (f32).
+pub const CELL_BYTES: u64 = 4 + 4 + 8 + 4;
+
+/// The memory densifying a `gw × gh` grid takes.
+pub fn densify_request(gw: usize, gh: usize) -> matloc_core::limits::MemoryRequest {
+    matloc_core::limits::MemoryRequest {
+        what: "densifying a depth map from points",
+        count: (gw as u64).saturating_mul(gh as u64),
+        unit: "cells",
+        bytes_each: CELL_BYTES,
+        remedy: "lower `surface.grid_max_side`",
+    }
+}
+
 /// Projects `points` into the view and fills the grid; `fill_radius` is a fraction of the
 /// grid's longer side.
 pub fn densify<'a>(
@@ -247,6 +262,27 @@ mod tests {
         );
         assert_eq!(d.points_in_view, 0);
         assert!(d.depth.data().iter().all(|v| *v == 0.0));
+    }
+
+    #[test]
+    fn a_grid_beyond_the_memory_budget_is_refused() {
+        use matloc_core::limits::{BudgetSource, MemoryBudget, check_against};
+        let budget = Some(MemoryBudget {
+            bytes: 64 << 20,
+            source: BudgetSource::Explicit,
+        });
+        let big = Camera::pinhole(40_000, 30_000, 3e4, 3e4, 2e4, 1.5e4).unwrap();
+        let (gw, gh) = grid_size(&big, 4096);
+        assert_eq!((gw, gh), (4096, 3072));
+        let e = check_against(&densify_request(gw, gh), budget)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("12582912 cells") && e.contains("surface.grid_max_side"),
+            "{e}"
+        );
+        let (gw, gh) = grid_size(&big, 48);
+        assert!(check_against(&densify_request(gw, gh), budget).is_ok());
     }
 
     proptest! {

@@ -62,6 +62,9 @@ pub enum SurfaceError {
         /// All values.
         total: usize,
     },
+    /// A densified depth map does not fit in memory.
+    #[error("{0}")]
+    Limit(Box<matloc_core::limits::LimitError>),
     /// A setting is out of range.
     #[error("surface config: `{field}` {reason}")]
     InvalidConfig {
@@ -73,4 +76,10 @@ pub enum SurfaceError {
     /// A frame index outside the dataset.
     #[error("no frame {0} in the dataset")]
     NoFrame(usize),
+}
+
+impl From<matloc_core::limits::LimitError> for SurfaceError {
+    fn from(e: matloc_core::limits::LimitError) -> Self {
+        SurfaceError::Limit(Box::new(e))
+    }
 }

@@ -188,6 +188,8 @@ impl FrameSurfaces {
             .as_ref()
             .and_then(|b| b.get(index))
             .filter(|ids| !ids.is_empty());
+        let (gw, gh) = crate::densify::grid_size(&frame.camera, self.config.grid_max_side);
+        matloc_core::limits::check_memory(&crate::densify::densify_request(gw, gh))?;
         let d = match tracked {
             Some(ids) => densify(
                 &frame.camera,
