@@ -57,7 +57,15 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
             args.preset,
             data.display()
         )?;
-        synth_cmd::run(&args.preset, &data, None, None, &Default::default(), quiet)?;
+        synth_cmd::render(
+            &args.preset,
+            &data,
+            None,
+            None,
+            &Default::default(),
+            None,
+            quiet,
+        )?;
     }
     let config = match &args.config {
         Some(p) => map_cmd::read_config(p)?,

@@ -140,6 +140,25 @@ impl Dataset {
         self.frames.iter().filter(move |f| f.split == split)
     }
 
+    /// The scene's up direction (unit, world frame): the metadata's `up` when given, else the
+    /// reverse of the cameras' mean viewing direction when they mostly look down at the scene
+    /// (an aerial survey), else +z.
+    pub fn up_direction(&self) -> Vector3<f64> {
+        if let Some(u) = self.metadata.up.map(Vector3::from)
+            && u.iter().all(|v| v.is_finite())
+            && u.norm() > 1e-12
+        {
+            return u.normalize();
+        }
+        let sum: Vector3<f64> = self.frames.iter().map(Frame::viewing_direction).sum();
+        let n = self.frames.len().max(1) as f64;
+        if (sum / n).norm() > 0.5 {
+            -sum.normalize()
+        } else {
+            Vector3::z()
+        }
+    }
+
     /// Indices of the frames of one split.
     pub fn split_indices(&self, split: Split) -> Vec<usize> {
         (0..self.frames.len())

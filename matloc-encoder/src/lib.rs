@@ -18,6 +18,10 @@
 //! docs/BENCHMARKS.md (`research/examples/encoder_study.rs`). Checkpoints are format 2
 //! ([`CHECKPOINT_KEY`]); format-1 files are refused with a typed error.
 
+mod augment;
+
+pub use augment::JitterConfig;
+use augment::jitter;
 use burn::module::Module;
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -29,8 +33,8 @@ use burn::tensor::activation::{log_softmax, relu};
 use matloc_core::{FeatureMap, Image};
 use matloc_match::FeatureStats;
 use matloc_match::RenderedView;
+use rand::SeedableRng;
 use rand::seq::index::sample;
-use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -93,6 +97,14 @@ pub struct EncoderConfig {
     /// Hidden widths of the per-cell MLP head (ReLU between layers); empty: a single linear
     /// layer from the trunk to the output dims.
     pub head_hidden: Vec<usize>,
+    /// Feed the network, besides the RGB image, its local contrast: each channel's linear light
+    /// divided by its 13 × 13 local mean, as a log ratio ([`local_contrast`]). Shading that is
+    /// smooth over the window — a cast shadow's interior, exposure, white balance — divides
+    /// out, so a query under another sun keeps its texture. Off by default: on `small` it did
+    /// not help the second flight and cost same-flight accuracy (docs/DECISIONS.md, "Queries
+    /// from another flight").
+    #[serde(default)]
+    pub local_contrast: bool,
 }
 
 impl Default for EncoderConfig {
@@ -101,6 +113,7 @@ impl Default for EncoderConfig {
             width: 48,
             dilations: vec![1, 2, 4, 8],
             head_hidden: vec![128, 128],
+            local_contrast: false,
         }
     }
 }
@@ -143,7 +156,7 @@ impl Trunk {
                 .init(device)
         };
         Trunk {
-            stem1: conv(3, w / 2, 3, 2, 1),
+            stem1: conv(input_channels(cfg), w / 2, 3, 2, 1),
             stem2: conv(w / 2, w, 3, 2, 1),
             blocks: cfg
                 .dilations
@@ -201,31 +214,6 @@ impl Net {
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let h = self.trunk.forward(x).permute([0, 2, 3, 1]);
         self.head.forward(h).permute([0, 3, 1, 2])
-    }
-}
-
-/// Photometric augmentation applied to training images.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct JitterConfig {
-    /// Brightness gain drawn from `1 ± brightness`.
-    pub brightness: f32,
-    /// Contrast about the image mean, `1 ± contrast`.
-    pub contrast: f32,
-    /// Per-channel gain `1 ± colour`.
-    pub colour: f32,
-    /// Gaussian pixel noise standard deviation.
-    pub noise: f32,
-}
-
-impl Default for JitterConfig {
-    fn default() -> Self {
-        JitterConfig {
-            brightness: 0.2,
-            contrast: 0.2,
-            colour: 0.05,
-            noise: 0.01,
-        }
     }
 }
 
@@ -327,6 +315,18 @@ pub struct EncoderSample {
     pub image: Image<f32>,
     /// Rendered targets.
     pub target: RenderedView,
+    /// Camera and scene up of the view, when known: augmentation then casts shadows of the
+    /// view's own geometry (the target's depth) under random suns.
+    pub view: Option<SampleView>,
+}
+
+/// Where a training image was taken, for geometry-aware augmentation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SampleView {
+    /// Intrinsics at the image's size.
+    pub camera: matloc_core::Camera,
+    /// The scene's up direction in camera coordinates (unit).
+    pub up_cam: [f64; 3],
 }
 
 /// Reported after every step.
@@ -353,14 +353,59 @@ pub struct QueryEncoder {
     net: Net,
 }
 
-fn image_tensor(images: &[Image<f32>], device: &Device) -> Result<Tensor<4>, EncoderError> {
+/// Channels of the network input: RGB, plus the local contrast when configured.
+fn input_channels(cfg: &EncoderConfig) -> usize {
+    if cfg.local_contrast { 6 } else { 3 }
+}
+
+/// Half-width of the local-mean window of [`local_contrast`], pixels.
+const LOCAL_RADIUS: usize = 6;
+
+/// Local contrast of an RGB image, channel-major `3 × H × W`: `ln(L / (mean₁₃ₓ₁₃(L) + ε)) / 2`
+/// clamped to ±1.5, with `L` the channel's linear light (display value^2.2) and the mean over a
+/// 13 × 13 window (clamped at the border).
+pub fn local_contrast(img: &Image<f32>) -> Vec<f32> {
+    let (w, h, _) = img.shape();
+    let mut out = Vec::with_capacity(3 * w * h);
+    let r = LOCAL_RADIUS;
+    for ch in 0..3 {
+        let lin: Vec<f32> = (0..w * h)
+            .map(|i| img.data()[i * 3 + ch].max(0.0).powf(2.2))
+            .collect();
+        // Separable box mean with clamped indices.
+        let mut rows = vec![0.0f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
+                let sum: f32 = lin[y * w + a..=y * w + b].iter().sum();
+                rows[y * w + x] = sum / (b - a + 1) as f32;
+            }
+        }
+        for y in 0..h {
+            let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
+            for x in 0..w {
+                let sum: f32 = (a..=b).map(|yy| rows[yy * w + x]).sum();
+                let mean = sum / (b - a + 1) as f32;
+                let v = (lin[y * w + x] + 1e-3) / (mean + 1e-3);
+                out.push((0.5 * v.ln()).clamp(-1.5, 1.5));
+            }
+        }
+    }
+    out
+}
+
+fn image_tensor(
+    images: &[Image<f32>],
+    local: bool,
+    device: &Device,
+) -> Result<Tensor<4>, EncoderError> {
     let (w, h, c) = images[0].shape();
     if c != 3 || w < 8 || h < 8 {
         return Err(EncoderError::BadInput(format!(
             "need an RGB image of at least 8 x 8, got {w} x {h} x {c}"
         )));
     }
-    let mut data = Vec::with_capacity(images.len() * 3 * h * w);
+    let mut data = Vec::with_capacity(images.len() * 6 * h * w);
     for img in images {
         if img.shape() != (w, h, c) {
             return Err(EncoderError::BadInput("images of different sizes".into()));
@@ -372,9 +417,13 @@ fn image_tensor(images: &[Image<f32>], device: &Device) -> Result<Tensor<4>, Enc
                 }
             }
         }
+        if local {
+            data.extend(local_contrast(img));
+        }
     }
+    let c = if local { 6 } else { 3 };
     Ok(Tensor::<4>::from_data(
-        TensorData::new(data, [images.len(), 3, h, w]),
+        TensorData::new(data, [images.len(), c, h, w]),
         device,
     ))
 }
@@ -383,39 +432,6 @@ fn image_tensor(images: &[Image<f32>], device: &Device) -> Result<Tensor<4>, Enc
 fn crop(out: Tensor<4>, rows: usize, cols: usize) -> Tensor<4> {
     let [b, d, _, _] = out.dims();
     out.slice([0..b, 0..d, 0..rows, 0..cols])
-}
-
-fn jitter(img: &Image<f32>, cfg: &JitterConfig, rng: &mut ChaCha8Rng) -> Image<f32> {
-    let mut u = |a: f32| {
-        if a > 0.0 {
-            rng.random_range(-a..a)
-        } else {
-            0.0
-        }
-    };
-    let gain = 1.0 + u(cfg.brightness);
-    let contrast = 1.0 + u(cfg.contrast);
-    let ch = [
-        1.0 + u(cfg.colour),
-        1.0 + u(cfg.colour),
-        1.0 + u(cfg.colour),
-    ];
-    let data = img.data();
-    let mean = data.iter().sum::<f32>() / data.len().max(1) as f32;
-    let (w, h, c) = img.shape();
-    let mut out = Image::new(w, h, c);
-    for (k, (o, &v)) in out.data_mut().iter_mut().zip(data).enumerate() {
-        let n = if cfg.noise > 0.0 {
-            // Box–Muller on the fly keeps the crate free of a distributions dependency.
-            let u1: f32 = 1.0 - rng.random::<f32>();
-            let u2: f32 = rng.random::<f32>();
-            cfg.noise * (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
-        } else {
-            0.0
-        };
-        *o = (((v - mean) * contrast + mean) * gain * ch[k % 3] + n).clamp(0.0, 1.0);
-    }
-    out
 }
 
 impl QueryEncoder {
@@ -448,7 +464,11 @@ impl QueryEncoder {
     /// Raw-domain feature map (`⌊H/4⌋ × ⌊W/4⌋ × dims`) of an RGB image.
     pub fn encode(&self, image: &Image<f32>) -> Result<FeatureMap, EncoderError> {
         let device = Device::flex();
-        let x = image_tensor(std::slice::from_ref(image), &device)?;
+        let x = image_tensor(
+            std::slice::from_ref(image),
+            self.config.local_contrast,
+            &device,
+        )?;
         let (rows, cols) = (
             image.height() / ENCODER_STRIDE as usize,
             image.width() / ENCODER_STRIDE as usize,
@@ -564,6 +584,7 @@ pub fn train_encoder(
             "batch, steps, width and temperature must be positive".into(),
         ));
     }
+    cfg.jitter.validate().map_err(EncoderError::InvalidConfig)?;
     let (w, h, _) = samples[0].image.shape();
     let (cols, rows) = (w / ENCODER_STRIDE as usize, h / ENCODER_STRIDE as usize);
     for s in samples {
@@ -614,9 +635,9 @@ pub fn train_encoder(
         let picks = sample(&mut rng, samples.len(), bsz).into_vec();
         let imgs: Vec<Image<f32>> = picks
             .iter()
-            .map(|&p| jitter(&samples[p].image, &cfg.jitter, &mut rng))
+            .map(|&p| jitter(&samples[p], &cfg.jitter, &mut rng))
             .collect();
-        let x = image_tensor(&imgs, &device)?;
+        let x = image_tensor(&imgs, cfg.net.local_contrast, &device)?;
         let mut tdata = Vec::with_capacity(bsz * d * cells);
         let mut mdata = Vec::with_capacity(bsz * cells);
         for &p in &picks {
@@ -770,11 +791,12 @@ fn train_head(
                     if copy == 0 {
                         samples[p].image.clone()
                     } else {
-                        jitter(&samples[p].image, &cfg.jitter, rng)
+                        jitter(&samples[p], &cfg.jitter, rng)
                     }
                 })
                 .collect();
-            let f = crop(trunk.forward(image_tensor(&imgs, &plain)?), rows, cols);
+            let x = image_tensor(&imgs, cfg.net.local_contrast, &plain)?;
+            let f = crop(trunk.forward(x), rows, cols);
             let v: Vec<f32> = f
                 .into_data()
                 .try_into_vec()

@@ -42,6 +42,7 @@ fn samples(n: usize, size: usize, seed: u64) -> Vec<EncoderSample> {
                     depth_z: vec![10.0; g * g],
                     accumulation: vec![1.0; g * g],
                 },
+                view: None,
             }
         })
         .collect()
@@ -58,6 +59,7 @@ fn small_config(steps: usize) -> EncoderTrainConfig {
             width: 16,
             dilations: vec![1],
             head_hidden: vec![16],
+            local_contrast: false,
         },
         steps,
         batch: 4,

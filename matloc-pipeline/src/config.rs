@@ -122,8 +122,9 @@ pub struct EncoderStageConfig {
 }
 
 impl Default for EncoderStageConfig {
-    /// 600 end-to-end steps, then 3000 head-only steps on the frozen trunk's cell buffer (the
-    /// recipe and its measurements: docs/DECISIONS.md, "Query encoder recipe").
+    /// 600 end-to-end steps, then 3000 head-only steps on the frozen trunk's cell buffer of
+    /// each view and two augmented copies (the recipe and its measurements: docs/DECISIONS.md,
+    /// "Query encoder recipe", "Queries from another flight").
     fn default() -> Self {
         Self {
             views_per_block: 128,
@@ -131,6 +132,7 @@ impl Default for EncoderStageConfig {
                 steps: 600,
                 head_phase: HeadPhaseConfig {
                     steps: 3000,
+                    copies: 3,
                     ..HeadPhaseConfig::default()
                 },
                 ..EncoderTrainConfig::default()

@@ -70,6 +70,20 @@ impl SynthConfig {
                 });
             }
         }
+        if !self
+            .render
+            .white_balance
+            .iter()
+            .all(|g| g.is_finite() && *g > 0.0)
+        {
+            return Err(SynthError::InvalidConfig {
+                field: "render.white_balance",
+                reason: format!(
+                    "gains must be positive numbers, got {:?}",
+                    self.render.white_balance
+                ),
+            });
+        }
         Ok(())
     }
 }

@@ -32,6 +32,7 @@
 
 mod config;
 mod error;
+pub mod flight;
 mod geometry;
 mod noise;
 pub mod oracle;
@@ -49,6 +50,7 @@ mod tests;
 
 pub use config::{PRESET_NAMES, SynthConfig};
 pub use error::SynthError;
+pub use flight::{SecondFlight, synthesize_second_flight};
 pub use raycast::Hit;
 pub use render::{RenderOptions, Rendered};
 pub use survey::{SurveyConfig, SurveyGeometry, SurveyPlan, plan_survey, survey_geometry};

@@ -22,6 +22,9 @@ pub struct RenderOptions {
     pub sun_strength: f32,
     /// Overall exposure multiplier applied before the display transfer curve.
     pub exposure: f32,
+    /// Per-channel (R, G, B) gains in linear light: the camera's white balance relative to the
+    /// map's flight (1, 1, 1).
+    pub white_balance: [f32; 3],
 }
 
 impl Default for RenderOptions {
@@ -31,6 +34,7 @@ impl Default for RenderOptions {
             shadows: true,
             sun_strength: 4.0,
             exposure: 1.0,
+            white_balance: [1.0; 3],
         }
     }
 }
@@ -109,7 +113,8 @@ impl World {
         let scale = 0.3 * opts.exposure;
         let mut rgb = [0.0f32; 3];
         for k in 0..3 {
-            let lin = albedo[k] * (sun * sun_col[k] + sky * sky_col[k]) * scale;
+            let lin =
+                albedo[k] * (sun * sun_col[k] + sky * sky_col[k]) * scale * opts.white_balance[k];
             // Soft shoulder instead of a hard clip keeps bright roofs textured.
             let mapped = lin / (1.0 + 0.25 * lin);
             rgb[k] = mapped.clamp(0.0, 1.0).powf(1.0 / 2.2);

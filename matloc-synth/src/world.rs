@@ -715,6 +715,30 @@ impl World {
         self.sun
     }
 
+    /// The same scene under another sun (azimuth clockwise from north, elevation above the
+    /// horizon, degrees): what a flight on another day or hour sees. Geometry and albedo are
+    /// untouched, so a map of one sun and queries of another differ only in light and shadow.
+    pub fn with_sun(
+        mut self,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+    ) -> Result<World, crate::SynthError> {
+        let elevation_ok = elevation_deg > 5.0 && elevation_deg <= 90.0;
+        if !elevation_ok || !azimuth_deg.is_finite() {
+            return Err(crate::SynthError::InvalidConfig {
+                field: "sun",
+                reason: format!(
+                    "azimuth must be finite and elevation in (5, 90] degrees, got {azimuth_deg}, {elevation_deg}"
+                ),
+            });
+        }
+        let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
+        self.sun = Vector3::new(az.sin() * el.cos(), az.cos() * el.cos(), el.sin());
+        self.config.sun_azimuth_deg = azimuth_deg;
+        self.config.sun_elevation_deg = elevation_deg;
+        Ok(self)
+    }
+
     /// Number of buildings that were placed.
     pub fn building_count(&self) -> usize {
         self.buildings.len()

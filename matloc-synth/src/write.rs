@@ -28,7 +28,7 @@ pub fn generate(config: &SynthConfig) -> Result<(World, SurveyPlan), SynthError>
     Ok((world, plan))
 }
 
-fn metadata(config: &SynthConfig, world: &World) -> SceneMetadata {
+pub(crate) fn metadata(config: &SynthConfig, world: &World) -> SceneMetadata {
     let (lo, hi) = world.bounds();
     SceneMetadata {
         bounds_min: Some([lo.x, lo.y, lo.z]),

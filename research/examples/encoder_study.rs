@@ -273,6 +273,7 @@ fn main() {
             EncoderSample {
                 image: v.image.clone(),
                 target: r,
+                view: None,
             }
         })
         .collect();

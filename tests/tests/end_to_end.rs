@@ -542,3 +542,167 @@ fn maps_without_depth_localize_within_1_5x_of_the_depth_build() {
     }
     assert!(failures.is_empty(), "{failures:?}");
 }
+
+/// Errors of the learned-encoder pipeline (`Method::Matloc`) on `frames` of `dataset`:
+/// translation error per query (∞ when refused) and the number of false accepts (returned
+/// and > 5 m or > 10°).
+fn learned_errors(
+    map: &LoadedMap,
+    dataset: &Dataset,
+    frames: &[&matloc_data::Frame],
+) -> (Vec<f64>, usize) {
+    let options = MethodOptions::default();
+    let mut errors = Vec::new();
+    let mut wrong = 0;
+    for f in frames {
+        let (image, camera) = matloc_data::images::load_frame_image(dataset, f, 1).unwrap();
+        let r = localize_with(map, Method::Matloc, "q", &image, &camera, &options).unwrap();
+        errors.push(match r.cam_from_world {
+            Some(p) if within(&p, &f.cam_from_world, 5.0, 10.0) => {
+                translation_error_m(&p, &f.cam_from_world)
+            }
+            Some(_) => {
+                wrong += 1;
+                f64::INFINITY
+            }
+            None => f64::INFINITY,
+        });
+    }
+    (errors, wrong)
+}
+
+fn count_within(errors: &[f64], t: f64) -> usize {
+    errors.iter().filter(|e| **e <= t).count()
+}
+
+/// The test views re-shot as a later flight, written to disk and read back as a dataset with
+/// `camera_model` OPENCV. With the map's sun (+0.4 EV, warmer white balance, a k1 = −0.05 lens,
+/// 0.5 px blur, sensor noise) the learned encoder localizes them about as well as the same
+/// flight's views at the same poses. With the sun also turned 55° and lowered to 22° (the
+/// default second flight) most are refused — the gap measured in docs/BENCHMARKS.md — but
+/// none may be returned wrong.
+#[test]
+#[ignore = "not met yet: with the map's sun the second flight localized 2/10 within 1 m (1 false) against the same flight's 5/10 on one build (docs/BENCHMARKS.md, \"Queries from another flight\")"]
+fn a_second_flight_localizes_close_to_the_same_flight() {
+    let b = built();
+    let config = SynthConfig::preset("tiny").unwrap();
+    let map = LoadedMap::open(&b.map_dir).unwrap();
+    let same: Vec<_> = b.dataset.split(Split::Test).collect();
+    let (same_err, same_wrong) = learned_errors(&map, &b.dataset, &same);
+    let n_same = count_within(&same_err, 1.0);
+    let same_sun = matloc_synth::SecondFlight {
+        sun_azimuth_shift_deg: 0.0,
+        sun_elevation_deg: None,
+        ..matloc_synth::SecondFlight::default()
+    };
+    for (name, flight, bounded) in [
+        ("second flight, same sun", same_sun, true),
+        (
+            "second flight, sun moved",
+            matloc_synth::SecondFlight::default(),
+            false,
+        ),
+    ] {
+        let dir = b
+            .map_dir
+            .parent()
+            .unwrap()
+            .join(name.replace([' ', ','], "_"));
+        let _ = std::fs::remove_dir_all(&dir);
+        matloc_synth::synthesize_second_flight(&config, &flight, &dir, &|_| {}).unwrap();
+        let flown = read_dataset(&dir).unwrap();
+        let second: Vec<_> = flown.split(Split::Test).collect();
+        assert_eq!(second.len(), same.len());
+        for (s, f) in second.iter().zip(&same) {
+            assert_eq!(s.cam_from_world, f.cam_from_world);
+            assert!(
+                (s.camera.distortion.k1 + 0.05).abs() < 1e-12,
+                "lens not read back"
+            );
+        }
+        let (err, wrong) = learned_errors(&map, &flown, &second);
+        let n = count_within(&err, 1.0);
+        eprintln!(
+            "tiny, learned encoder: same flight {n_same}/10 within 1 m ({same_wrong} false), \
+             {name} {n}/10 ({wrong} false); errors {same_err:.3?} vs {err:.3?}"
+        );
+        assert!(wrong <= 1, "{name}: {wrong} false accepts");
+        if bounded {
+            assert!(
+                n + 2 >= n_same,
+                "{name}: {n}/10 within 1 m, same flight {n_same}/10"
+            );
+        }
+    }
+}
+
+/// A query through a distorting lens (k1 = −0.05, same pose and light) localizes as well as
+/// its undistorted twin: with the perfect encoder from the same fixed starts (the geometry:
+/// rendering, matching and PnP through the lens model), and with the learned encoder.
+#[test]
+#[ignore = "not met yet: on one build the distorted twins reached a perfect-encoder median of 0.240 m against 0.164 m undistorted, and 2/10 against 5/10 within 1 m with the learned encoder"]
+fn a_distorted_query_localizes_as_well_as_its_undistorted_twin() {
+    let b = built();
+    let config = SynthConfig::preset("tiny").unwrap();
+    let lens = matloc_synth::SecondFlight::lens_only(-0.05);
+    let (world, frames) = matloc_synth::flight::second_flight_frames(&config, &lens).unwrap();
+    let map = LoadedMap::open(&b.map_dir).unwrap();
+    let same: Vec<_> = b.dataset.split(Split::Test).collect();
+    let options = MethodOptions::default();
+    let (mut plain, mut bent) = (Vec::new(), Vec::new());
+    let (mut plain_learned, mut bent_learned) = (Vec::new(), Vec::new());
+    for (i, (twin, f)) in frames.iter().zip(&same).enumerate() {
+        // The planned pose and the one read back from transforms.json (float round trip).
+        assert!(within(&twin.cam_from_world, &f.cam_from_world, 1e-6, 1e-6));
+        let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
+        let distorted = matloc_synth::flight::render_second_flight(&world, &config, &lens, twin, i);
+        let start = FixedStart(start_of(&f.cam_from_world, i));
+        let err = |p: Option<Pose>| {
+            p.map_or(f64::INFINITY, |p| {
+                translation_error_m(&p, &f.cam_from_world)
+            })
+        };
+        plain.push(err(perfect_encoder_pose(
+            &map, &start, &image, camera, f, None,
+        )));
+        bent.push(err(perfect_encoder_pose(
+            &map,
+            &start,
+            &distorted,
+            twin.camera,
+            f,
+            None,
+        )));
+        let learned = |img: &Image<f32>, cam: &matloc_core::Camera| {
+            localize_with(&map, Method::Matloc, "q", img, cam, &options)
+                .unwrap()
+                .cam_from_world
+                .filter(|p| within(p, &f.cam_from_world, 5.0, 10.0))
+        };
+        plain_learned.push(err(learned(&image, &camera)));
+        bent_learned.push(err(learned(&distorted, &twin.camera)));
+    }
+    for v in [&mut plain, &mut bent] {
+        v.sort_by(f64::total_cmp);
+    }
+    eprintln!(
+        "twins, perfect encoder: undistorted median {:.3} m, distorted {:.3} m; learned: \
+         {}/10 vs {}/10 within 1 m ({plain_learned:.3?} vs {bent_learned:.3?})",
+        median(&plain),
+        median(&bent),
+        count_within(&plain_learned, 1.0),
+        count_within(&bent_learned, 1.0)
+    );
+    assert!(
+        median(&bent) <= 1.25 * median(&plain) + 0.02,
+        "distorted median {:.3} m, undistorted {:.3} m",
+        median(&bent),
+        median(&plain)
+    );
+    assert!(
+        count_within(&bent_learned, 1.0) + 2 >= count_within(&plain_learned, 1.0),
+        "learned encoder: distorted {:?}, undistorted {:?}",
+        bent_learned,
+        plain_learned
+    );
+}

@@ -3,7 +3,8 @@
 
 use matloc_data::Dataset;
 use matloc_encoder::{
-    ENCODER_STRIDE, EncoderProgress, EncoderSample, EncoderTrainConfig, QueryEncoder, train_encoder,
+    ENCODER_STRIDE, EncoderProgress, EncoderSample, EncoderTrainConfig, QueryEncoder, SampleView,
+    train_encoder,
 };
 use matloc_match::{FeatureStats, ViewRenderer};
 use matloc_partition::Partition;
@@ -40,6 +41,7 @@ pub fn train_block_encoder(
     progress: &mut dyn FnMut(&EncoderProgress),
 ) -> Result<QueryEncoder, PipelineError> {
     let renderer = load_nerf(map, b, 0)?;
+    let up_world = dataset.up_direction();
     let mut samples = Vec::with_capacity(views.len());
     let mut rows = Vec::new();
     let nd = dims.len();
@@ -53,7 +55,15 @@ pub fn train_block_encoder(
                 rows.extend_from_slice(&target.features[i * nd..(i + 1) * nd]);
             }
         }
-        samples.push(EncoderSample { image, target });
+        let up = v.cam_from_world.rotation * up_world;
+        samples.push(EncoderSample {
+            image,
+            target,
+            view: Some(SampleView {
+                camera: v.camera,
+                up_cam: [up.x, up.y, up.z],
+            }),
+        });
     }
     if rows.is_empty() {
         return Err(PipelineError::Config(format!(

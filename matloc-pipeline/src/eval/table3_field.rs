@@ -427,6 +427,7 @@ pub fn evaluate(
                 .map(|(v, t)| EncoderSample {
                     image: sc.rgb(v),
                     target: t,
+                    view: None,
                 })
                 .collect();
             let cfg = EncoderTrainConfig {
