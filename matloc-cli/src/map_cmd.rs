@@ -257,7 +257,16 @@ pub fn read_config(path: &Path) -> Result<MapConfig> {
             }
         );
     }
-    serde_json::from_value(value).with_context(|| format!("parsing map config {}", path.display()))
+    // The path of the offending key (`nerf.steps`) goes into the message, which serde alone
+    // gives only as a line and column.
+    serde_path_to_error::deserialize(value).map_err(|e| {
+        anyhow::anyhow!(
+            "map config {}: field `{}`: {}",
+            path.display(),
+            e.path(),
+            e.inner()
+        )
+    })
 }
 
 /// Reads the dataset, opens (or creates) the map, applies the split rule from the flags (or,
@@ -816,6 +825,20 @@ mod tests {
     use std::path::Path;
 
     use super::{PlanRecord, SlurmArgs, shell_line, slurm_scripts};
+
+    #[test]
+    fn config_errors_name_the_key_and_refuse_a_non_object() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.json");
+        std::fs::write(&path, r#"{"nerf": {"steps": "many"}}"#).unwrap();
+        let e = format!("{:#}", super::read_config(&path).unwrap_err());
+        assert!(e.contains("field `nerf.steps`") && e.contains("c.json"), "{e}");
+        std::fs::write(&path, "[]").unwrap();
+        let e = format!("{:#}", super::read_config(&path).unwrap_err());
+        assert!(e.contains("must be a JSON object") && e.contains("an array"), "{e}");
+        std::fs::write(&path, r#"{"nerf": {"steps": 7}}"#).unwrap();
+        assert_eq!(super::read_config(&path).unwrap().nerf.steps, 7);
+    }
 
     #[test]
     fn shell_words_are_quoted_only_when_needed() {

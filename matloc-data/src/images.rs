@@ -209,7 +209,12 @@ fn decode(path: &Path) -> Result<DynamicImage, ImageLoadError> {
 
 /// Loads an RGB image as three channels in `[0, 1]` (8-bit values / 255; 16-bit / 65535).
 pub fn load_rgb(path: &Path) -> Result<Image<f32>, ImageLoadError> {
-    let img = decode(path)?;
+    Ok(rgb_from_decoded(decode(path)?))
+}
+
+/// A decoded image as three channels in `[0, 1]` (8-bit values / 255; 16-bit / 65535; grey
+/// and alpha images converted to RGB).
+pub fn rgb_from_decoded(img: DynamicImage) -> Image<f32> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let data: Vec<f32> = match img {
         DynamicImage::ImageRgb16(_)
@@ -228,7 +233,7 @@ pub fn load_rgb(path: &Path) -> Result<Image<f32>, ImageLoadError> {
             .map(|v| v as f32 / 255.0)
             .collect(),
     };
-    Ok(Image::from_vec(w, h, 3, data).expect("decoder returns w*h*3 values"))
+    Image::from_vec(w, h, 3, data).expect("RGB conversion gives w*h*3 values")
 }
 
 /// Averages `factor × factor` blocks (box filter). Trailing rows/columns that do not fill a

@@ -627,6 +627,10 @@ pub fn train_encoder(
         })
         .collect();
     let device = Device::flex().autodiff();
+    // Weight initialisation draws from the backend's generator: seeded, so that the same
+    // samples and config train the same encoder (a map built by block jobs equals one built
+    // in one process).
+    device.seed(cfg.seed);
     let mut net = Net::new(&cfg.net, d, &device);
     let mut optim = AdamConfig::new().init();
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);

@@ -104,6 +104,18 @@ fn learns_and_roundtrips() {
 }
 
 #[test]
+fn the_same_samples_and_seed_train_the_same_encoder() {
+    let s = samples(6, 32, 2);
+    let train = || {
+        let mut cfg = small_config(20);
+        cfg.head_phase.steps = 10;
+        let enc = train_encoder(&s, vec![3, 5, 8, 9], stats_of(&s), &cfg, &mut |_| {}).unwrap();
+        enc.encode(&s[0].image).unwrap()
+    };
+    assert_eq!(train().data(), train().data());
+}
+
+#[test]
 fn typed_errors() {
     let s = samples(2, 32, 2);
     let stats = stats_of(&s);

@@ -5,7 +5,7 @@
 
 use std::io::Cursor;
 
-use image::{DynamicImage, ImageFormat, ImageReader, Limits};
+use image::{ImageFormat, ImageReader, Limits};
 use matloc_core::{Camera, CameraError, Image};
 
 /// Why a query image cannot be used.
@@ -25,10 +25,6 @@ pub enum QueryError {
     /// The decoder failed (truncated or corrupt file).
     #[error("cannot decode the image: {0}")]
     Decode(#[source] image::ImageError),
-    /// The decoder returned a buffer of the wrong length (a decoder bug, reported instead of
-    /// panicking).
-    #[error("the decoded image has the wrong number of values")]
-    BufferLength,
     /// The image is not RGB.
     #[error("{name}: expected an RGB image, got {channels} channels")]
     Channels {
@@ -117,25 +113,7 @@ pub fn decode_rgb(bytes: &[u8], limits: DecodeLimits) -> Result<Image<f32>, Quer
         },
         e => QueryError::Decode(e),
     })?;
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let data: Vec<f32> = match img {
-        DynamicImage::ImageRgb16(_)
-        | DynamicImage::ImageRgba16(_)
-        | DynamicImage::ImageLuma16(_)
-        | DynamicImage::ImageLumaA16(_) => img
-            .to_rgb16()
-            .into_raw()
-            .into_iter()
-            .map(|v| v as f32 / 65535.0)
-            .collect(),
-        _ => img
-            .to_rgb8()
-            .into_raw()
-            .into_iter()
-            .map(|v| v as f32 / 255.0)
-            .collect(),
-    };
-    Image::from_vec(w, h, 3, data).map_err(|_| QueryError::BufferLength)
+    Ok(matloc_data::images::rgb_from_decoded(img))
 }
 
 /// `camera` for an image of `w`×`h` pixels: unchanged at its own size, rescaled when the image
