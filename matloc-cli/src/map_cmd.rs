@@ -832,10 +832,16 @@ mod tests {
         let path = dir.path().join("c.json");
         std::fs::write(&path, r#"{"nerf": {"steps": "many"}}"#).unwrap();
         let e = format!("{:#}", super::read_config(&path).unwrap_err());
-        assert!(e.contains("field `nerf.steps`") && e.contains("c.json"), "{e}");
+        assert!(
+            e.contains("field `nerf.steps`") && e.contains("c.json"),
+            "{e}"
+        );
         std::fs::write(&path, "[]").unwrap();
         let e = format!("{:#}", super::read_config(&path).unwrap_err());
-        assert!(e.contains("must be a JSON object") && e.contains("an array"), "{e}");
+        assert!(
+            e.contains("must be a JSON object") && e.contains("an array"),
+            "{e}"
+        );
         std::fs::write(&path, r#"{"nerf": {"steps": 7}}"#).unwrap();
         assert_eq!(super::read_config(&path).unwrap().nerf.steps, 7);
     }
