@@ -110,7 +110,7 @@ enum DatasetCommand {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Err(err) = logging::init(cli.verbose, cli.log_file.as_deref()) {
-        eprintln!("error: {err:#}");
+        eprintln!("error: {}", output::error_chain(&err));
         return ExitCode::FAILURE;
     }
     let result = match cli.command {
@@ -139,7 +139,7 @@ fn main() -> ExitCode {
         Err(err) if output::is_closed_stdout(&err) => ExitCode::SUCCESS,
         Err(err) => {
             tracing::debug!(error = ?err, "command failed");
-            eprintln!("error: {err:#}");
+            eprintln!("error: {}", output::error_chain(&err));
             ExitCode::FAILURE
         }
     }

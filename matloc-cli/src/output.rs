@@ -19,6 +19,24 @@ pub fn write(args: std::fmt::Arguments<'_>) -> anyhow::Result<()> {
     }
 }
 
+/// `err` and its causes joined by `: ` (as `{:#}` prints them), leaving out a cause whose text
+/// the message before it already ends with: many error types print their source in their own
+/// message as well as returning it as `source()`, which would repeat it.
+pub fn error_chain(err: &anyhow::Error) -> String {
+    let mut out = String::new();
+    for cause in err.chain() {
+        let text = cause.to_string();
+        if !out.is_empty() && out.ends_with(&text) {
+            continue;
+        }
+        if !out.is_empty() {
+            out.push_str(": ");
+        }
+        out.push_str(&text);
+    }
+    out
+}
+
 /// Whether `err` (anywhere in its chain) is a closed stdout.
 pub fn is_closed_stdout(err: &anyhow::Error) -> bool {
     err.chain().any(|e| {
@@ -48,6 +66,23 @@ macro_rules! out {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cause_already_in_the_message_is_not_repeated() {
+        #[derive(Debug, thiserror::Error)]
+        #[error("I/O error on /m/x: {source}")]
+        struct Wrapped {
+            source: std::io::Error,
+        }
+        let io = std::io::Error::other("No space left on device");
+        let err = anyhow::Error::new(Wrapped { source: io }).context("writing the map");
+        assert_eq!(
+            super::error_chain(&err),
+            "writing the map: I/O error on /m/x: No space left on device"
+        );
+        let plain = anyhow::anyhow!("inner").context("outer");
+        assert_eq!(super::error_chain(&plain), "outer: inner");
+    }
 
     #[test]
     fn a_broken_pipe_anywhere_in_the_chain_is_a_closed_stdout() {
