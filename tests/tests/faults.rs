@@ -7,6 +7,9 @@
 //! (root only); without permission it limits the file size instead (`RLIMIT_FSIZE`, with
 //! SIGXFSZ ignored so writes fail with EFBIG).
 
+mod bin_path;
+
+use bin_path::matloc_bin;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
@@ -29,24 +32,6 @@ const TINY_CONFIG: &str = r#"{
 
 /// Seed of the kill moments.
 const SEED: u64 = 0x6b69_6c6c;
-
-fn matloc_bin() -> PathBuf {
-    if let Some(p) = std::env::var_os("MATLOC_BIN") {
-        return PathBuf::from(p);
-    }
-    let exe = std::env::current_exe().expect("test executable path");
-    let bin = exe
-        .parent()
-        .and_then(|d| d.parent())
-        .map(|d| d.join("matloc"))
-        .expect("target directory");
-    assert!(
-        bin.is_file(),
-        "{} is missing: build it with `cargo build -p matloc-cli` (or set MATLOC_BIN)",
-        bin.display()
-    );
-    bin
-}
 
 fn matloc(args: &[&Path]) -> Output {
     Command::new(matloc_bin())

@@ -8,6 +8,9 @@
 //! The binary is the workspace's `target/<profile>/matloc` (built by `cargo test --workspace`
 //! or `cargo build -p matloc-cli`), or `MATLOC_BIN`.
 
+mod bin_path;
+
+use bin_path::matloc_bin;
 mod hostile_corpus;
 
 use std::collections::BTreeMap;
@@ -28,25 +31,6 @@ const CASE_TIMEOUT: Duration = Duration::from_secs(60);
 
 /// Worker threads running cases.
 const WORKERS: usize = 4;
-
-fn matloc_bin() -> PathBuf {
-    if let Some(p) = std::env::var_os("MATLOC_BIN") {
-        return PathBuf::from(p);
-    }
-    // target/<profile>/deps/hostile-HASH → target/<profile>/matloc
-    let exe = std::env::current_exe().expect("test executable path");
-    let bin = exe
-        .parent()
-        .and_then(|d| d.parent())
-        .map(|d| d.join("matloc"))
-        .expect("target directory");
-    assert!(
-        bin.is_file(),
-        "{} is missing: build it with `cargo build -p matloc-cli` (or set MATLOC_BIN)",
-        bin.display()
-    );
-    bin
-}
 
 /// What one case did.
 struct Outcome {
