@@ -3,9 +3,11 @@
 //!
 //! A `POST /v1/localize` request goes through, in order: the shutdown check (503), the
 //! declared body size (413), admission (503 at once when `workers + queue` requests are
-//! already admitted, so memory never grows with load: only admitted requests read their
+//! already admitted, so memory never grows with load: only admitted requests keep their
 //! bodies), body parsing (4xx naming the part or field), a free worker (queue), then decoding
-//! and localization on a blocking thread. Everything after admission runs under the timeout
+//! and localization on a blocking thread. A request answered with an error before its body
+//! was read has the rest of its body read and discarded first (bounded in bytes and time, a
+//! "lingering close"): a client still sending then gets the answer, not a broken pipe. Everything after admission runs under the timeout
 //! (504); a localization still running at the timeout keeps its worker until it ends, so the
 //! number of running localizations never exceeds `workers`.
 
@@ -406,23 +408,31 @@ async fn handle(
             field: None,
         });
     }
-    let declared = request
-        .headers()
+    let (head, mut body) = request.into_parts();
+    let limit = s.config.max_body_bytes;
+    let declared = head
+        .headers
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
-    if declared.is_some_and(|n| n > s.config.max_body_bytes as u64) {
-        return Err(ApiError::too_large(s.config.max_body_bytes));
+    if declared.is_some_and(|n| n > limit as u64) {
+        // A client that declared a body within the discard allowance is still sending it.
+        if declared.is_some_and(|n| n <= discard_allowance(limit)) {
+            discard(&mut body, discard_allowance(limit)).await;
+        }
+        return Err(ApiError::too_large(limit));
     }
-    let content_type = request
-        .headers()
+    let content_type = head
+        .headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
-        .unwrap_or("");
+        .unwrap_or("")
+        .to_owned();
     if !content_type
         .to_ascii_lowercase()
         .starts_with("multipart/form-data")
     {
+        discard(&mut body, discard_allowance(limit)).await;
         return Err(ApiError {
             status: StatusCode::UNSUPPORTED_MEDIA_TYPE,
             outcome: Outcome::BadRequest,
@@ -434,6 +444,7 @@ async fn handle(
         });
     }
     let Ok(admitted) = s.admission.clone().try_acquire_owned() else {
+        discard(&mut body, discard_allowance(limit)).await;
         return Err(ApiError {
             status: StatusCode::SERVICE_UNAVAILABLE,
             outcome: Outcome::Overloaded,
@@ -447,7 +458,8 @@ async fn handle(
     let timeout = s.config.timeout;
     let work = async {
         let queued = s.metrics.queued();
-        let parts = read_parts(s, request).await?;
+        let bytes = read_body(body, limit).await?;
+        let parts = read_parts(Request::from_parts(head, axum::body::Body::from(bytes))).await?;
         let worker = s
             .workers
             .clone()
@@ -490,16 +502,60 @@ async fn handle(
     }
 }
 
-/// Reads the multipart body: `image` (required), `camera` (required, JSON) and `name`
-/// (optional, echoed in the record).
-async fn read_parts(s: &Arc<Service>, request: Request) -> Result<Parts, ApiError> {
-    let limit = s.config.max_body_bytes;
-    let multipart_error = |field: &'static str, e: axum::extract::multipart::MultipartError| {
-        if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-            ApiError::too_large(limit)
-        } else {
-            ApiError::bad(field, format!("part `{field}`: {}", e.body_text()))
+/// How much of a refused request's body is read and discarded before the answer: four times
+/// the body limit, at least 1 MiB.
+fn discard_allowance(limit: usize) -> u64 {
+    (4 * limit as u64).max(1 << 20)
+}
+
+/// The longest wait for the rest of a refused request's body.
+const DISCARD_WAIT: Duration = Duration::from_secs(2);
+
+/// Reads and discards what is left of a request body, at most `allowance` bytes and
+/// [`DISCARD_WAIT`], so that a client still sending it reads the error response instead of
+/// failing its write on a closed connection.
+async fn discard(body: &mut axum::body::Body, allowance: u64) {
+    use http_body_util::BodyExt;
+    let drain = async {
+        let mut seen = 0u64;
+        while let Some(Ok(frame)) = body.frame().await {
+            if let Some(data) = frame.data_ref() {
+                seen += data.len() as u64;
+                if seen > allowance {
+                    break;
+                }
+            }
         }
+    };
+    let _ = tokio::time::timeout(DISCARD_WAIT, drain).await;
+}
+
+/// Reads the whole body, at most `limit` bytes; a longer one (chunked, or longer than its
+/// declared length) is discarded up to the allowance and answered 413.
+async fn read_body(
+    mut body: axum::body::Body,
+    limit: usize,
+) -> Result<axum::body::Bytes, ApiError> {
+    use http_body_util::BodyExt;
+    let mut buf = Vec::new();
+    while let Some(frame) = body.frame().await {
+        let frame = frame.map_err(|e| ApiError::bad("body", format!("reading the body: {e}")))?;
+        if let Some(data) = frame.data_ref() {
+            if buf.len() + data.len() > limit {
+                discard(&mut body, discard_allowance(limit)).await;
+                return Err(ApiError::too_large(limit));
+            }
+            buf.extend_from_slice(data);
+        }
+    }
+    Ok(buf.into())
+}
+
+/// Parses the multipart body (already read in full): `image` (required), `camera`
+/// (required, JSON) and `name` (optional, echoed in the record).
+async fn read_parts(request: Request) -> Result<Parts, ApiError> {
+    let multipart_error = |field: &'static str, e: axum::extract::multipart::MultipartError| {
+        ApiError::bad(field, format!("part `{field}`: {}", e.body_text()))
     };
     let mut multipart = Multipart::from_request(request, &())
         .await
