@@ -43,6 +43,14 @@ pub struct KeypointConfig {
     /// Cell size (pixels of the level) of the spreading grid; each cell keeps at most a share
     /// of the level's budget proportional to its area, twice over.
     pub cell_px: usize,
+    /// Place each keypoint at the peak of a parabola fitted to the Harris response of its 3×3
+    /// neighbourhood (per axis) instead of the pixel centre: positions to a fraction of a
+    /// pixel, which is what a pose from keypoints is limited by.
+    pub subpixel: bool,
+    /// Detect on the image upsampled 2× (bilinear) and report positions in the image's
+    /// pixels: more and finer keypoints, at about four times the detection cost (as SIFT
+    /// doubles its first octave). On 320×240 views it halved the structure localizer's error.
+    pub upsample: bool,
 }
 
 impl Default for KeypointConfig {
@@ -53,6 +61,8 @@ impl Default for KeypointConfig {
             scale_factor: 1.2,
             fast_threshold: 0.05,
             cell_px: 32,
+            subpixel: true,
+            upsample: true,
         }
     }
 }
@@ -157,6 +167,23 @@ fn harris(img: &GrayImage, x: usize, y: usize) -> f32 {
     a * b - c * c - 0.04 * (a + b) * (a + b)
 }
 
+/// Offset of the peak of the parabola through `(-1, a)`, `(0, b)`, `(1, c)`, within
+/// `[-0.5, 0.5]`; 0 where the three values do not make a maximum at the centre.
+fn parabola_peak(a: f32, b: f32, c: f32) -> f32 {
+    let curvature = a - 2.0 * b + c;
+    if curvature >= 0.0 || !curvature.is_finite() {
+        return 0.0;
+    }
+    (0.5 * (a - c) / curvature).clamp(-0.5, 0.5)
+}
+
+/// Sub-pixel offset of a corner at `(x, y)` from its Harris response around it.
+fn subpixel_offset(img: &GrayImage, x: usize, y: usize, r: f32) -> (f32, f32) {
+    let dx = parabola_peak(harris(img, x - 1, y), r, harris(img, x + 1, y));
+    let dy = parabola_peak(harris(img, x, y - 1), r, harris(img, x, y + 1));
+    (dx, dy)
+}
+
 /// Orientation by the intensity centroid over the disk of radius 15.
 fn orientation(img: &GrayImage, x: usize, y: usize) -> f32 {
     let (mut m01, mut m10) = (0.0f32, 0.0f32);
@@ -249,16 +276,21 @@ pub fn detect_and_describe(
     let total: f32 = (0..levels).map(|l| area_ratio.powi(l as i32)).sum();
     let mut keypoints = Vec::new();
     let mut descriptors = Vec::new();
-    let mut level_img = image.clone();
+    let base = if config.upsample {
+        image.resized(2 * image.width(), 2 * image.height())
+    } else {
+        image.clone()
+    };
+    let mut level_img = base.clone();
     for l in 0..levels {
         if l > 0 {
             let scale = sf.powi(l as i32);
-            let w = (image.width() as f32 / scale).round() as usize;
-            let h = (image.height() as f32 / scale).round() as usize;
+            let w = (base.width() as f32 / scale).round() as usize;
+            let h = (base.height() as f32 / scale).round() as usize;
             if w <= 2 * BORDER || h <= 2 * BORDER {
                 break;
             }
-            level_img = image.resized(w, h);
+            level_img = base.resized(w, h);
         }
         let scale_x = image.width() as f32 / level_img.width().max(1) as f32;
         let scale_y = image.height() as f32 / level_img.height().max(1) as f32;
@@ -291,10 +323,15 @@ pub fn detect_and_describe(
             .map(|&(x, y, r)| {
                 let angle = orientation(&level_img, x, y);
                 let d = describe(&smooth, x, y, angle);
+                let (dx, dy) = if config.subpixel {
+                    subpixel_offset(&level_img, x, y, r)
+                } else {
+                    (0.0, 0.0)
+                };
                 (
                     Keypoint {
-                        x: (x as f32 + 0.5) * scale_x,
-                        y: (y as f32 + 0.5) * scale_y,
+                        x: (x as f32 + 0.5 + dx) * scale_x,
+                        y: (y as f32 + 0.5 + dy) * scale_y,
                         level: l as u8,
                         angle,
                         response: r,
@@ -357,6 +394,100 @@ mod tests {
         }
         // Nothing along the straight edges' middles or the flat areas.
         assert!(kps.len() <= 8, "{}", kps.len());
+    }
+
+    #[test]
+    fn parabola_peak_finds_the_vertex() {
+        // Samples of -(x - 0.3)² at -1, 0, 1.
+        let f = |x: f32| -(x - 0.3) * (x - 0.3);
+        assert!((parabola_peak(f(-1.0), f(0.0), f(1.0)) - 0.3).abs() < 1e-5);
+        // No maximum at the centre: no offset.
+        assert_eq!(parabola_peak(1.0, 0.0, 1.0), 0.0);
+        assert_eq!(parabola_peak(0.0, 0.0, 0.0), 0.0);
+        assert_eq!(parabola_peak(f32::NAN, 0.0, 0.0), 0.0);
+    }
+
+    /// A bright square with its corner at `(x0, y0)` (fractional), each pixel the covered
+    /// area's share (8×8 samples).
+    fn square_at(w: usize, h: usize, x0: f32, y0: f32) -> GrayImage {
+        let mut data = vec![0.1f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let mut covered = 0;
+                for sy in 0..8 {
+                    for sx in 0..8 {
+                        let px = x as f32 + (sx as f32 + 0.5) / 8.0;
+                        let py = y as f32 + (sy as f32 + 0.5) / 8.0;
+                        let inside = px >= x0 && px < x0 + 36.0 && py >= y0 && py < y0 + 36.0;
+                        covered += usize::from(inside);
+                    }
+                }
+                data[y * w + x] += 0.8 * covered as f32 / 64.0;
+            }
+        }
+        GrayImage::from_vec(w, h, data).unwrap()
+    }
+
+    #[test]
+    fn subpixel_positions_follow_a_fractional_shift() {
+        // The same square moved by a fraction of a pixel: the keypoints must move with it.
+        let cfg = |subpixel| KeypointConfig {
+            levels: 1,
+            subpixel,
+            upsample: false,
+            ..KeypointConfig::default()
+        };
+        let corner = |img: &GrayImage, subpixel: bool| {
+            let (kps, _) = detect_and_describe(img, &cfg(subpixel));
+            // The keypoint nearest the square's top-left corner.
+            kps.into_iter()
+                .min_by(|a, b| {
+                    let d = |k: &Keypoint| (k.x - 30.0).powi(2) + (k.y - 30.0).powi(2);
+                    d(a).total_cmp(&d(b))
+                })
+                .map(|k| (k.x, k.y))
+                .unwrap()
+        };
+        let base = square_at(96, 96, 30.0, 30.0);
+        let mut error = [0.0f32; 2];
+        for (i, subpixel) in [false, true].into_iter().enumerate() {
+            let c0 = corner(&base, subpixel);
+            for shift in [0.2f32, 0.4, 0.6, 0.8] {
+                let c = corner(&square_at(96, 96, 30.0 + shift, 30.0 + shift), subpixel);
+                error[i] += ((c.0 - c0.0) - shift).abs() + ((c.1 - c0.1) - shift).abs();
+            }
+        }
+        // Integer positions are off by up to half a pixel per axis; the fit follows the shift
+        // (measured: 2.05 px summed over the 8 offsets against 4.0; the parabola through a
+        // Harris peak is biased towards the pixel centre, so not to zero).
+        assert!(
+            error[1] < 0.6 * error[0],
+            "shift error with sub-pixel {:.3} px, without {:.3} px",
+            error[1],
+            error[0]
+        );
+    }
+
+    #[test]
+    fn upsampled_detection_reports_positions_in_the_image() {
+        let img = square_at(96, 96, 30.0, 30.0);
+        let cfg = KeypointConfig {
+            levels: 1,
+            ..KeypointConfig::default()
+        };
+        assert!(cfg.upsample);
+        let (kps, _) = detect_and_describe(&img, &cfg);
+        // The four corners (a corner detector places them slightly inside the bright square,
+        // the same way at each corner), centred on the square's centre (48, 48) in the
+        // image's pixels: a scale or half-pixel error of the 2× grid would move the centre.
+        assert_eq!(kps.len(), 4, "{kps:?}");
+        for k in &kps {
+            let inside = (k.x - 48.0).abs().min((k.y - 48.0).abs());
+            assert!((16.5..=18.0).contains(&inside), "{k:?}");
+        }
+        let cx = kps.iter().map(|k| k.x).sum::<f32>() / 4.0;
+        let cy = kps.iter().map(|k| k.y).sum::<f32>() / 4.0;
+        assert!((cx - 48.0).abs() < 0.05 && (cy - 48.0).abs() < 0.05, "{cx} {cy}");
     }
 
     #[test]
