@@ -36,6 +36,46 @@ struct Features {
 /// Progress of triangulation: `(phase, done, total)` with phase `"detect"` or `"match"`.
 pub type TriangulateProgress<'a> = &'a (dyn Fn(&str, usize, usize) + Sync);
 
+/// One image's keypoints as triangulation saw them (at the detection size).
+#[derive(Clone, Debug)]
+pub struct ImageKeypoints {
+    /// Dataset frame.
+    pub frame: usize,
+    /// The camera at the detection size.
+    pub camera: Camera,
+    /// Keypoint positions, pixels.
+    pub pixels: Vec<Point2<f64>>,
+    /// Their descriptors.
+    pub descriptors: Vec<Descriptor>,
+}
+
+/// Triangulated points with the keypoints that observe them.
+#[derive(Clone, Debug, Default)]
+pub struct TrackedPoints {
+    /// Positions, world frame.
+    pub xyz: Vec<Point3<f64>>,
+    /// Per point, its observations as (index into `images`, keypoint index).
+    pub observations: Vec<Vec<(u32, u32)>>,
+    /// The keypoints of every triangulated image, in the order of the `frames` given.
+    pub images: Vec<ImageKeypoints>,
+}
+
+impl TrackedPoints {
+    /// The points with per-frame visibility (tracks indexed by dataset frame).
+    pub fn to_sparse_points(&self, num_frames: usize) -> SparsePoints {
+        let mut by_frame = vec![Vec::new(); num_frames];
+        for (id, obs) in self.observations.iter().enumerate() {
+            for &(img, _) in obs {
+                by_frame[self.images[img as usize].frame].push(id as u32);
+            }
+        }
+        SparsePoints {
+            xyz: self.xyz.clone(),
+            by_frame: Some(by_frame),
+        }
+    }
+}
+
 /// Triangulates points seen by the frames `frames` of `dataset`; tracks are indexed by dataset
 /// frame.
 pub fn triangulate(
@@ -44,6 +84,18 @@ pub fn triangulate(
     config: &TriangulateConfig,
     progress: TriangulateProgress<'_>,
 ) -> Result<SparsePoints, SurfaceError> {
+    Ok(triangulate_tracks(dataset, frames, config, progress)?
+        .to_sparse_points(dataset.frames.len()))
+}
+
+/// Triangulates points seen by the frames `frames` of `dataset`, keeping each track's
+/// keypoints (the structure a keypoint localizer matches against).
+pub fn triangulate_tracks(
+    dataset: &Dataset,
+    frames: &[usize],
+    config: &TriangulateConfig,
+    progress: TriangulateProgress<'_>,
+) -> Result<TrackedPoints, SurfaceError> {
     let done = std::sync::atomic::AtomicUsize::new(0);
     let features = frames
         .par_iter()
@@ -65,12 +117,17 @@ pub fn triangulate(
             m.into_iter().map(move |(ka, kb)| (a, ka, b, kb))
         })
         .collect();
-    Ok(merge_tracks(
-        &features,
-        &matches,
-        dataset.frames.len(),
-        config,
-    ))
+    let mut tracks = merge_tracks(&features, &matches, config);
+    tracks.images = features
+        .into_iter()
+        .map(|f| ImageKeypoints {
+            frame: f.frame,
+            camera: f.camera,
+            pixels: f.pixels,
+            descriptors: f.descriptors,
+        })
+        .collect();
+    Ok(tracks)
 }
 
 fn features_of(
@@ -204,13 +261,12 @@ fn find(parent: &mut [usize], mut x: usize) -> usize {
     x
 }
 
-/// Joins pairwise matches into tracks and solves each track's point.
+/// Joins pairwise matches into tracks and solves each track's point (`images` left empty).
 fn merge_tracks(
     features: &[Features],
     matches: &[(usize, usize, usize, usize)],
-    num_frames: usize,
     config: &TriangulateConfig,
-) -> SparsePoints {
+) -> TrackedPoints {
     let mut offset = Vec::with_capacity(features.len() + 1);
     offset.push(0);
     for f in features {
@@ -240,10 +296,7 @@ fn merge_tracks(
         }
     }
     let min_sin = config.min_angle_deg.to_radians().sin();
-    let mut out = SparsePoints {
-        xyz: Vec::new(),
-        by_frame: Some(vec![Vec::new(); num_frames]),
-    };
+    let mut out = TrackedPoints::default();
     for mut obs in members.into_values() {
         // One observation per image (a track through two keypoints of one image is a chain
         // of wrong matches; the first keypoint stays, the reprojection test judges the rest).
@@ -290,12 +343,9 @@ fn merge_tracks(
         if !wide {
             continue;
         }
-        let id = out.xyz.len() as u32;
         out.xyz.push(x);
-        let by_frame = out.by_frame.as_mut().expect("tracks are built");
-        for &(i, _) in &obs {
-            by_frame[features[i].frame].push(id);
-        }
+        out.observations
+            .push(obs.iter().map(|&(i, k)| (i as u32, k as u32)).collect());
     }
     out
 }
