@@ -1,0 +1,415 @@
+//! The stored structure: triangulated points and, per training image, the keypoints that
+//! observe them (position, descriptor, point), in one safetensors file.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use matloc_core::pose::{Pose, camera_center, viewing_direction};
+use matloc_keypoints::Descriptor;
+use matloc_surface::triangulate::TrackedPoints;
+use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+
+use crate::error::StructureError;
+
+/// Format tag in the file's metadata.
+pub const STRUCTURE_FORMAT: &str = "matloc-structure/1";
+
+/// One training image: its pose and the keypoints that observe a point.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StructureImage {
+    /// Dataset frame index.
+    pub frame: u32,
+    /// World → camera pose.
+    pub cam_from_world: Pose,
+    /// Per observation: the point it observes (index into [`StructureMap::points`]).
+    pub point: Vec<u32>,
+    /// Per observation: the keypoint's descriptor.
+    pub descriptor: Vec<Descriptor>,
+    /// Per observation: the keypoint's pixel at the detection size.
+    pub pixel: Vec<[f32; 2]>,
+}
+
+impl StructureImage {
+    /// Camera centre, world frame.
+    pub fn center(&self) -> Point3<f64> {
+        camera_center(&self.cam_from_world)
+    }
+
+    /// Unit viewing direction, world frame.
+    pub fn viewing_direction(&self) -> Vector3<f64> {
+        viewing_direction(&self.cam_from_world)
+    }
+}
+
+/// Triangulated points and the training images' observations of them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StructureMap {
+    points: Vec<Point3<f64>>,
+    images: Vec<StructureImage>,
+}
+
+impl StructureMap {
+    /// Keeps, per triangulated image, the keypoints that observe a point; `pose_of(frame)`
+    /// gives a dataset frame's `cam_from_world`. Images without an observation are left out.
+    pub fn from_tracks(tracks: &TrackedPoints, pose_of: impl Fn(usize) -> Pose) -> StructureMap {
+        let mut per_image: Vec<Vec<(u32, u32)>> = vec![Vec::new(); tracks.images.len()];
+        for (p, obs) in tracks.observations.iter().enumerate() {
+            for &(img, k) in obs {
+                per_image[img as usize].push((k, p as u32));
+            }
+        }
+        let mut images = Vec::new();
+        for (im, mut obs) in tracks.images.iter().zip(per_image) {
+            if obs.is_empty() {
+                continue;
+            }
+            obs.sort_unstable();
+            images.push(StructureImage {
+                frame: im.frame as u32,
+                cam_from_world: pose_of(im.frame),
+                point: obs.iter().map(|&(_, p)| p).collect(),
+                descriptor: obs
+                    .iter()
+                    .map(|&(k, _)| im.descriptors[k as usize])
+                    .collect(),
+                pixel: obs
+                    .iter()
+                    .map(|&(k, _)| {
+                        let px = im.pixels[k as usize];
+                        [px.x as f32, px.y as f32]
+                    })
+                    .collect(),
+            });
+        }
+        StructureMap {
+            points: tracks.xyz.clone(),
+            images,
+        }
+    }
+
+    /// A structure from its parts; every observation must name an existing point and every
+    /// image have as many descriptors and pixels as observations.
+    pub fn new(
+        points: Vec<Point3<f64>>,
+        images: Vec<StructureImage>,
+    ) -> Result<StructureMap, StructureError> {
+        let bad = |reason: String| StructureError::Format {
+            path: Default::default(),
+            reason,
+        };
+        for (i, im) in images.iter().enumerate() {
+            if im.descriptor.len() != im.point.len() || im.pixel.len() != im.point.len() {
+                return Err(bad(format!(
+                    "image {i}: {} points, {} descriptors, {} pixels",
+                    im.point.len(),
+                    im.descriptor.len(),
+                    im.pixel.len()
+                )));
+            }
+            if let Some(&p) = im.point.iter().find(|&&p| p as usize >= points.len()) {
+                return Err(bad(format!(
+                    "image {i} names point {p} of {}",
+                    points.len()
+                )));
+            }
+        }
+        Ok(StructureMap { points, images })
+    }
+
+    /// Points, world frame.
+    pub fn points(&self) -> &[Point3<f64>] {
+        &self.points
+    }
+
+    /// Images with observations.
+    pub fn images(&self) -> &[StructureImage] {
+        &self.images
+    }
+
+    /// Observations over all images.
+    pub fn observations(&self) -> usize {
+        self.images.iter().map(|i| i.point.len()).sum()
+    }
+
+    /// The safetensors bytes: `points` f64 [P, 3], `image_frame` u32 [I], `image_pose` f64
+    /// [I, 7] (cam_from_world as qw qx qy qz tx ty tz), `image_start` u32 [I + 1] (offsets
+    /// into the observations), `obs_point` u32 [O], `obs_descriptor` u8 [O, 32],
+    /// `obs_pixel` f32 [O, 2].
+    pub fn to_bytes(&self) -> Result<Vec<u8>, StructureError> {
+        let fmt = |reason: String| StructureError::Format {
+            path: Default::default(),
+            reason,
+        };
+        let (p, i) = (self.points.len(), self.images.len());
+        let o = self.observations();
+        let mut points = Vec::with_capacity(p * 24);
+        for x in &self.points {
+            for v in x.iter() {
+                points.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        let (mut frame, mut pose, mut start) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut obs_point, mut obs_desc, mut obs_px) = (Vec::new(), Vec::new(), Vec::new());
+        let mut offset = 0u32;
+        for im in &self.images {
+            frame.extend_from_slice(&im.frame.to_le_bytes());
+            let q = im.cam_from_world.rotation.quaternion();
+            let t = im.cam_from_world.translation.vector;
+            for v in [q.w, q.i, q.j, q.k, t.x, t.y, t.z] {
+                pose.extend_from_slice(&v.to_le_bytes());
+            }
+            start.extend_from_slice(&offset.to_le_bytes());
+            offset += im.point.len() as u32;
+            for ((pt, d), px) in im.point.iter().zip(&im.descriptor).zip(&im.pixel) {
+                obs_point.extend_from_slice(&pt.to_le_bytes());
+                for w in d {
+                    obs_desc.extend_from_slice(&w.to_le_bytes());
+                }
+                for v in px {
+                    obs_px.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+        start.extend_from_slice(&offset.to_le_bytes());
+        let cols: [(&str, Dtype, Vec<usize>, &[u8]); 7] = [
+            ("points", Dtype::F64, vec![p, 3], &points),
+            ("image_frame", Dtype::U32, vec![i], &frame),
+            ("image_pose", Dtype::F64, vec![i, 7], &pose),
+            ("image_start", Dtype::U32, vec![i + 1], &start),
+            ("obs_point", Dtype::U32, vec![o], &obs_point),
+            ("obs_descriptor", Dtype::U8, vec![o, 32], &obs_desc),
+            ("obs_pixel", Dtype::F32, vec![o, 2], &obs_px),
+        ];
+        let mut views = Vec::with_capacity(cols.len());
+        for (name, dtype, shape, bytes) in cols {
+            views.push((
+                name.to_string(),
+                TensorView::new(dtype, shape, bytes).map_err(|e| fmt(format!("{name}: {e}")))?,
+            ));
+        }
+        let meta = HashMap::from([("format".to_string(), STRUCTURE_FORMAT.to_string())]);
+        safetensors::serialize(views, Some(meta)).map_err(|e| fmt(e.to_string()))
+    }
+
+    /// Parses [`StructureMap::to_bytes`] output, checking every shape, offset, index and
+    /// value; `path` names the file in errors.
+    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<StructureMap, StructureError> {
+        let bad = |reason: String| StructureError::Format {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| bad(e.to_string()))?;
+        let tag = meta.metadata().as_ref().and_then(|m| m.get("format"));
+        if tag.map(String::as_str) != Some(STRUCTURE_FORMAT) {
+            return Err(bad(format!(
+                "metadata `format` is {tag:?}, expected {STRUCTURE_FORMAT:?}"
+            )));
+        }
+        let st = SafeTensors::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
+        let column = |name: &str, dtype: Dtype, width: Option<usize>| {
+            let t = st
+                .tensor(name)
+                .map_err(|e| bad(format!("tensor `{name}`: {e}")))?;
+            if t.dtype() != dtype {
+                return Err(bad(format!(
+                    "tensor `{name}` is {:?}, expected {dtype:?}",
+                    t.dtype()
+                )));
+            }
+            let shape = t.shape().to_vec();
+            let ok = match width {
+                None => shape.len() == 1,
+                Some(w) => shape.len() == 2 && shape[1] == w,
+            };
+            if !ok {
+                return Err(bad(format!(
+                    "tensor `{name}` has shape {shape:?}, expected [n{}]",
+                    width.map_or(String::new(), |w| format!(", {w}"))
+                )));
+            }
+            Ok((shape[0], t.data().to_vec()))
+        };
+        let f64s = |b: &[u8]| -> Vec<f64> {
+            b.chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect()
+        };
+        let u32s = |b: &[u8]| -> Vec<u32> {
+            b.chunks_exact(4)
+                .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes")))
+                .collect()
+        };
+        let (p, raw) = column("points", Dtype::F64, Some(3))?;
+        let xyz = f64s(&raw);
+        if let Some(k) = xyz.iter().position(|v| !v.is_finite()) {
+            return Err(bad(format!(
+                "tensor `points`: point {} is not finite",
+                k / 3
+            )));
+        }
+        let points: Vec<Point3<f64>> = xyz
+            .chunks_exact(3)
+            .map(|c| Point3::new(c[0], c[1], c[2]))
+            .collect();
+        let (i, raw) = column("image_frame", Dtype::U32, None)?;
+        let frames = u32s(&raw);
+        let (ni, raw) = column("image_pose", Dtype::F64, Some(7))?;
+        if ni != i {
+            return Err(bad(format!(
+                "tensor `image_pose` has {ni} rows for {i} images"
+            )));
+        }
+        let poses = f64s(&raw);
+        let (ns, raw) = column("image_start", Dtype::U32, None)?;
+        if ns != i + 1 {
+            return Err(bad(format!(
+                "tensor `image_start` has {ns} entries for {i} images (expected {})",
+                i + 1
+            )));
+        }
+        let start = u32s(&raw);
+        let (o, raw) = column("obs_point", Dtype::U32, None)?;
+        let obs_point = u32s(&raw);
+        let (nd, obs_desc) = column("obs_descriptor", Dtype::U8, Some(32))?;
+        let (np, raw) = column("obs_pixel", Dtype::F32, Some(2))?;
+        if nd != o || np != o {
+            return Err(bad(format!(
+                "observation tensors disagree: obs_point {o}, obs_descriptor {nd}, obs_pixel {np}"
+            )));
+        }
+        let obs_px: Vec<f32> = raw
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+            .collect();
+        if start.first() != Some(&0)
+            || start.last().map(|&s| s as usize) != Some(o)
+            || start.windows(2).any(|w| w[0] > w[1])
+        {
+            return Err(bad(format!(
+                "tensor `image_start` must rise from 0 to {o} (the observations)"
+            )));
+        }
+        if let Some(k) = obs_point.iter().position(|&q| q as usize >= p) {
+            return Err(bad(format!(
+                "tensor `obs_point`: observation {k} names point {} of {p}",
+                obs_point[k]
+            )));
+        }
+        if let Some(k) = obs_px.iter().position(|v| !v.is_finite()) {
+            return Err(bad(format!(
+                "tensor `obs_pixel`: observation {} is not finite",
+                k / 2
+            )));
+        }
+        let mut images = Vec::with_capacity(i);
+        for k in 0..i {
+            let v = &poses[7 * k..7 * k + 7];
+            let q = Quaternion::new(v[0], v[1], v[2], v[3]);
+            if v.iter().any(|x| !x.is_finite()) || (q.norm() - 1.0).abs() > 1e-6 {
+                return Err(bad(format!(
+                    "tensor `image_pose`: image {k} is not a finite unit quaternion and translation"
+                )));
+            }
+            let pose = Pose::from_parts(
+                Translation3::new(v[4], v[5], v[6]),
+                UnitQuaternion::new_normalize(q),
+            );
+            let (a, b) = (start[k] as usize, start[k + 1] as usize);
+            images.push(StructureImage {
+                frame: frames[k],
+                cam_from_world: pose,
+                point: obs_point[a..b].to_vec(),
+                descriptor: obs_desc[32 * a..32 * b]
+                    .chunks_exact(32)
+                    .map(|c| {
+                        std::array::from_fn(|w| {
+                            u64::from_le_bytes(c[8 * w..8 * w + 8].try_into().expect("8 bytes"))
+                        })
+                    })
+                    .collect(),
+                pixel: obs_px[2 * a..2 * b]
+                    .chunks_exact(2)
+                    .map(|c| [c[0], c[1]])
+                    .collect(),
+            });
+        }
+        Ok(StructureMap { points, images })
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use matloc_core::Camera;
+    use matloc_surface::triangulate::ImageKeypoints;
+    use nalgebra::Point2;
+
+    pub(crate) fn sample() -> StructureMap {
+        let camera = Camera::pinhole(100, 80, 90.0, 90.0, 50.0, 40.0).unwrap();
+        let kp = |n: usize, seed: u64| ImageKeypoints {
+            frame: seed as usize,
+            camera,
+            pixels: (0..n)
+                .map(|k| Point2::new(k as f64 + 0.25, seed as f64 + 0.5))
+                .collect(),
+            descriptors: (0..n)
+                .map(|k| [k as u64, seed, u64::MAX - k as u64, 7])
+                .collect(),
+        };
+        let tracks = TrackedPoints {
+            xyz: vec![Point3::new(1.0, 2.0, 3.0), Point3::new(-1.0, 0.5, 9.0)],
+            observations: vec![vec![(0, 1), (1, 0)], vec![(0, 3), (2, 2)]],
+            images: vec![kp(4, 3), kp(2, 5), kp(3, 8), kp(5, 9)],
+        };
+        StructureMap::from_tracks(&tracks, |f| {
+            Pose::from_parts(
+                Translation3::new(f as f64, 0.0, 1.0),
+                UnitQuaternion::from_euler_angles(0.1 * f as f64, 0.0, 0.2),
+            )
+        })
+    }
+
+    #[test]
+    fn tracks_become_per_image_observations_and_round_trip() {
+        let m = sample();
+        // The image without observations is left out.
+        assert_eq!(m.images().len(), 3);
+        assert_eq!(m.observations(), 4);
+        let first = &m.images()[0];
+        assert_eq!(first.frame, 3);
+        assert_eq!(first.point, vec![0, 1]);
+        assert_eq!(first.pixel[1], [3.25, 3.5]);
+        let bytes = m.to_bytes().unwrap();
+        let back = StructureMap::from_bytes(&bytes, Path::new("s.safetensors")).unwrap();
+        assert_eq!(back.points(), m.points());
+        for (a, b) in back.images().iter().zip(m.images()) {
+            assert_eq!(a.frame, b.frame);
+            assert_eq!(
+                (&a.point, &a.descriptor, &a.pixel),
+                (&b.point, &b.descriptor, &b.pixel)
+            );
+            assert!((a.cam_from_world.to_matrix() - b.cam_from_world.to_matrix()).norm() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn corrupt_files_are_refused_naming_file_and_tensor() {
+        let path = Path::new("map/structure.safetensors");
+        let err = StructureMap::from_bytes(b"not a file", path).unwrap_err();
+        assert!(
+            err.to_string().starts_with("map/structure.safetensors"),
+            "{err}"
+        );
+        // A point index past the points.
+        let mut m = sample();
+        m.images[1].point[0] = 99;
+        let err = StructureMap::from_bytes(&m.to_bytes().unwrap(), path).unwrap_err();
+        assert!(err.to_string().contains("obs_point"), "{err}");
+        // A non-finite point.
+        let mut m = sample();
+        m.points[1].x = f64::NAN;
+        let err = StructureMap::from_bytes(&m.to_bytes().unwrap(), path).unwrap_err();
+        assert!(err.to_string().contains("`points`"), "{err}");
+    }
+}
