@@ -51,7 +51,22 @@ pub struct JitterConfig {
 }
 
 impl Default for JitterConfig {
+    /// Brightness and contrast only: the heavier recipe ([`JitterConfig::another_day`]) made
+    /// same-flight queries worse and did not make queries of another day good enough
+    /// (docs/DECISIONS.md).
     fn default() -> Self {
+        JitterConfig {
+            brightness: 0.2,
+            contrast: 0.2,
+            ..JitterConfig::none()
+        }
+    }
+}
+
+impl JitterConfig {
+    /// Exposure, white balance, tone curve, blur, noise and moved-sun shadows, for maps whose
+    /// MatLoc queries come from another day.
+    pub fn another_day() -> Self {
         JitterConfig {
             brightness: 0.3,
             contrast: 0.2,
@@ -67,9 +82,7 @@ impl Default for JitterConfig {
             shadow_lift: 0.3,
         }
     }
-}
 
-impl JitterConfig {
     /// No augmentation.
     pub fn none() -> Self {
         JitterConfig {
@@ -451,6 +464,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         assert_eq!(jitter(&img, &JitterConfig::none(), &mut rng), img.image);
         JitterConfig::default().validate().unwrap();
+        JitterConfig::another_day().validate().unwrap();
         JitterConfig::none().validate().unwrap();
         let bad = JitterConfig {
             shadow_factor: [0.5, 0.2],
@@ -542,7 +556,7 @@ mod tests {
     #[test]
     fn jitter_is_seeded() {
         let img = grey(32, 24, 0.5);
-        let cfg = JitterConfig::default();
+        let cfg = JitterConfig::another_day();
         let a = jitter(&img, &cfg, &mut ChaCha8Rng::seed_from_u64(3));
         let b = jitter(&img, &cfg, &mut ChaCha8Rng::seed_from_u64(3));
         assert_eq!(a, b);

@@ -399,6 +399,8 @@ impl PlaceModel {
             .collect();
 
         let device = Device::flex().autodiff();
+        // Whatever the backend draws from its own generator is seeded too.
+        device.seed(config.seed);
         let mut net = match method {
             PlaceMethod::ArcFace => Net::ArcFace(ArcFaceNet::new(
                 &net_cfg,
