@@ -31,11 +31,11 @@ pub struct EvalArgs {
     /// Dataset whose test split are the queries.
     #[arg(long)]
     pub data: PathBuf,
-    /// Methods, comma-separated (matloc, rgb-keypoints, curriculum-inerf, inerf).
+    /// Methods, comma-separated (structure, matloc, rgb-keypoints, curriculum-inerf, inerf).
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "matloc,rgb-keypoints,curriculum-inerf,inerf"
+        default_value = "structure,matloc,rgb-keypoints,curriculum-inerf,inerf"
     )]
     pub methods: Vec<Method>,
     /// Use at most this many test queries (0 = all).
@@ -364,11 +364,14 @@ fn report(
     )?;
     writeln!(s, "## Table 2 — iterations and time\n")?;
     writeln!(s, "{}", timing_table(&summaries))?;
-    if let Some(base) = summaries.iter().find(|x| x.method == "matloc") {
-        for o in summaries.iter().filter(|x| x.method != "matloc") {
+    for name in [Method::DEFAULT.name(), Method::Matloc.name()] {
+        let Some(base) = summaries.iter().find(|x| x.method == name) else {
+            continue;
+        };
+        for o in summaries.iter().filter(|x| x.method != name) {
             writeln!(
                 s,
-                "- matloc is {:.1}× faster than {} per query.",
+                "- {name} is {:.1}× faster than {} per query.",
                 o.mean_seconds / base.mean_seconds.max(1e-9),
                 o.method
             )?;

@@ -46,8 +46,9 @@ pub struct LocalizeArgs {
     /// does), ground truth for the errors when it has poses, and its world for --world.
     #[arg(long)]
     data: Option<PathBuf>,
-    /// Method.
-    #[arg(long, default_value = "matloc")]
+    /// Method: `structure` (the default: keypoints against the map's triangulated points),
+    /// `matloc` (the paper's NeRF-feature pipeline) or a baseline.
+    #[arg(long, default_value_t = Method::DEFAULT)]
     method: Method,
     /// Output format.
     #[arg(long, value_enum, default_value = "jsonl")]

@@ -9,6 +9,7 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use matloc_pipeline::LoadedMap;
+use matloc_pipeline::methods::Method;
 use matloc_serve::ServeConfig;
 
 /// Arguments of `matloc serve`.
@@ -36,6 +37,9 @@ pub struct ServeArgs {
     /// Seconds from admission to answer (504 beyond).
     #[arg(long, default_value_t = 30.0)]
     timeout_s: f64,
+    /// The localizer every request runs (as `localize --method`).
+    #[arg(long, default_value_t = Method::DEFAULT)]
+    method: Method,
 }
 
 /// Runs `matloc serve` until SIGINT or SIGTERM.
@@ -51,6 +55,7 @@ pub fn run(args: &ServeArgs) -> Result<()> {
         queue: args.queue.unwrap_or(2 * workers),
         max_body_bytes: args.max_body_bytes,
         timeout: Duration::from_secs_f64(args.timeout_s),
+        method: args.method,
         ..defaults
     };
     if config.workers == 0 {

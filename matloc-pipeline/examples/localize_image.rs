@@ -1,4 +1,5 @@
-//! Localize one image against a built map through the library.
+//! Localize one image against a built map through the library, with the default method
+//! (`structure`; the paper's pipeline is `Method::Matloc`).
 //!
 //! `cargo run --release -p matloc-pipeline --example localize_image -- MAP IMAGE [FX FY CX CY]`
 //!
@@ -10,6 +11,7 @@ use std::path::Path;
 
 use matloc_core::Camera;
 use matloc_pipeline::LoadedMap;
+use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -31,7 +33,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .ok_or("the map records no camera: pass FX FY CX CY")?
             .rescaled(w, h)?
     };
-    // The query encoders were trained at the map's resolution: bring the query to it.
+    // The map was built at its own resolution: bring the query to it.
     let (image, camera) = match map.camera() {
         Some(c) if (c.width, c.height) != (w, h) => (
             matloc_place::resize_area(&image, c.width as usize, c.height as usize),
@@ -39,7 +41,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ),
         _ => (image, camera),
     };
-    let result = map.localizer().localize(&image, &camera)?;
+    let options = MethodOptions::default();
+    let result = localize_with(&map, Method::DEFAULT, &args[2], &image, &camera, &options)?;
+    let confidence = result.confidence.unwrap_or(f64::NAN);
     match result.cam_from_world {
         Some(pose) => {
             let t = pose.translation.vector;
@@ -49,13 +53,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 t.x, t.y, t.z, q.w, q.i, q.j, q.k
             );
             println!(
-                "confidence {:.3}, {} inliers, {:.3} s",
-                result.confidence, result.inliers, result.total_seconds
+                "confidence {confidence:.3}, {} inliers, {:.3} s",
+                result.inliers, result.total_seconds
             );
         }
         None => println!(
-            "not localized (best confidence {:.3} after {} hypotheses)",
-            result.confidence,
+            "not localized (confidence {confidence:.3} after {} hypotheses)",
             result.hypotheses.len()
         ),
     }

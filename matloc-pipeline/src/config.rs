@@ -36,6 +36,8 @@ pub struct MapConfig {
     pub place: PlaceStageConfig,
     /// Held-out views and the confidence calibration.
     pub calibration: CalibrationConfig,
+    /// Triangulated keypoints of the training images (the structure localizer).
+    pub structure: crate::build::structure::StructureStageConfig,
     /// Localizer settings stored with the map (the confidence model is replaced by the
     /// calibrated one when the map is loaded).
     pub localize: LocalizeOptions,

@@ -46,6 +46,9 @@ pub enum PipelineError {
     /// Finding the scene surface of the training views failed.
     #[error("surface: {0}")]
     Surface(#[from] matloc_surface::SurfaceError),
+    /// Structure store or structure localizer.
+    #[error(transparent)]
+    Structure(#[from] matloc_structure::StructureError),
     /// The partition failed.
     #[error("partition: {0}")]
     Partition(#[from] matloc_partition::PartitionError),

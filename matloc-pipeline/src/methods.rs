@@ -1,7 +1,9 @@
-//! Localizing one query with any of the four methods on a loaded map, from the same coarse
-//! pose: MatLoc (the [`Localizer`](crate::Localizer)), rendered-RGB + keypoints, iNeRF and
-//! curriculum iNeRF. The baselines start from MatLoc's best place hypothesis and render the
-//! block that serves it, as in the paper's comparison.
+//! Localizing one query with any of the methods on a loaded map: MatLoc (the
+//! [`Localizer`](crate::Localizer)), rendered-RGB + keypoints, iNeRF and curriculum iNeRF
+//! (the paper's four), and `structure`: keypoints matched to the map's triangulated training
+//! images ([`matloc_structure`]), the default. The NeRF baselines start from MatLoc's best
+//! place hypothesis and render the block that serves it, as in the paper's comparison;
+//! `structure` and MatLoc try the same top-k place hypotheses in order.
 
 use std::fmt;
 use std::str::FromStr;
@@ -31,16 +33,23 @@ pub enum Method {
     CurriculumInerf,
     /// iNeRF (300 iterations).
     Inerf,
+    /// Query keypoints matched to the triangulated keypoints of the training images nearest
+    /// each place hypothesis, then PnP (the default).
+    Structure,
 }
 
 impl Method {
-    /// Every method, in the paper's table order.
-    pub const ALL: [Method; 4] = [
+    /// Every method: the paper's table order, then `structure`.
+    pub const ALL: [Method; 5] = [
         Method::Matloc,
         Method::RgbKeypoints,
         Method::CurriculumInerf,
         Method::Inerf,
+        Method::Structure,
     ];
+
+    /// The method `localize`, `serve` and `eval` use unless told otherwise.
+    pub const DEFAULT: Method = Method::Structure;
 
     /// Command-line name.
     pub fn name(self) -> &'static str {
@@ -49,6 +58,7 @@ impl Method {
             Method::RgbKeypoints => "rgb-keypoints",
             Method::CurriculumInerf => "curriculum-inerf",
             Method::Inerf => "inerf",
+            Method::Structure => "structure",
         }
     }
 }
@@ -109,6 +119,8 @@ pub struct MethodOptions {
     pub keypoints: KeypointBaselineOptions,
     /// iNeRF (the curriculum variant uses its own schedule with these step sizes).
     pub inerf: InerfOptions,
+    /// Structure localizer.
+    pub structure: matloc_structure::StructureOptions,
 }
 
 /// Localizes `image` (taken with `camera`) with `method` on `map`.
@@ -120,6 +132,9 @@ pub fn localize_with(
     camera: &Camera,
     options: &MethodOptions,
 ) -> Result<QueryResult, PipelineError> {
+    if method == Method::Structure {
+        return localize_structure(map, name, image, camera, &options.structure);
+    }
     if method == Method::Matloc {
         let loc = map.localizer().localize(image, camera)?;
         let passes = loc.hypotheses.iter().map(|h| h.passes as u32).sum::<u32>();
@@ -177,7 +192,9 @@ pub fn localize_with(
             };
             inerf(model, camera, image, &hyp.cam_from_world, &o, &mut rng)?
         }
-        Method::Matloc => return Err(PipelineError::Internal("handled above")),
+        Method::Matloc | Method::Structure => {
+            return Err(PipelineError::Internal("handled above"));
+        }
     };
     let mut stage_seconds = vec![("place".to_string(), place_s)];
     stage_seconds.extend(out.stage_seconds);
@@ -210,6 +227,91 @@ pub fn localize_with(
         stage_seconds,
         total_seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// The structure method: the top-k place hypotheses as start poses, in order.
+fn localize_structure(
+    map: &LoadedMap,
+    name: &str,
+    image: &Image<f32>,
+    camera: &Camera,
+    options: &matloc_structure::StructureOptions,
+) -> Result<QueryResult, PipelineError> {
+    let start = Instant::now();
+    let structure = map.structure.as_ref().ok_or_else(|| {
+        PipelineError::Config(format!(
+            "{}: the map has no keypoint structure (built without the structure stage); \
+             rebuild it, or localize with --method matloc",
+            map.dir.root().display()
+        ))
+    })?;
+    let localize_options = map.options();
+    let (image, camera) = query_at_working_size(image, camera, localize_options.max_side);
+    let (image, camera) = (image.as_ref(), &camera);
+    let t = Instant::now();
+    let hyps = map
+        .place
+        .predict(image, camera, localize_options.top_k.max(1))?;
+    let place_s = t.elapsed().as_secs_f64();
+    // In a process that serves some blocks, the places are tried up to the first one in a
+    // block it does not serve (a prefix, so the indices stay the hypotheses'): when the best
+    // place is elsewhere the query is refused, as with the other methods, and the process
+    // that serves it answers.
+    let starts: Vec<Pose> = hyps
+        .iter()
+        .take_while(|h| map.serves(h.block.unwrap_or(0)))
+        .map(|h| h.cam_from_world)
+        .collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(map.config.localize.seed);
+    let r = matloc_structure::localize(structure, image, camera, &starts, options, &mut rng)?;
+    let hypotheses = hyps
+        .iter()
+        .enumerate()
+        .filter_map(|(i, h)| {
+            let tried: Vec<_> = r.starts.iter().filter(|s| s.start == i).collect();
+            let last = tried.last()?;
+            Some(HypothesisReport {
+                group: h.group,
+                score: h.score,
+                block: h.block.unwrap_or(0),
+                coarse_cam_from_world: h.cam_from_world,
+                matches: last.matches,
+                inliers: last.inliers,
+                confidence: nfa_confidence(last.log10_nfa).unwrap_or(0.0),
+                passes: tried.len(),
+                accepted: r.cam_from_world.is_some() && tried.iter().any(|s| s.accepted),
+                failure: (last.images == 0)
+                    .then(|| "no training image looks the way this hypothesis does".into()),
+                alignment: 0.0,
+                log10_nfa: last.log10_nfa,
+            })
+        })
+        .collect();
+    let mut stage_seconds = vec![("place".to_string(), place_s)];
+    stage_seconds.extend(r.stage_seconds);
+    Ok(QueryResult {
+        name: name.to_string(),
+        method: Method::Structure,
+        localized: r.cam_from_world.is_some(),
+        camera_center: r
+            .cam_from_world
+            .as_ref()
+            .map(|p| camera_center(p).coords.into()),
+        cam_from_world: r.cam_from_world,
+        confidence: nfa_confidence(r.log10_nfa),
+        inliers: r.inliers,
+        iterations: r.starts.len() as u32,
+        hypotheses,
+        stage_seconds,
+        total_seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// The structure method's confidence: 1 − NFA, where the number of false alarms bounds the
+/// chance that a consensus this large among these matches is an accident (not calibrated on
+/// held-out views as MatLoc's is; every accepted pose has at least 1 − 10^max_log10_nfa).
+fn nfa_confidence(log10_nfa: Option<f64>) -> Option<f64> {
+    log10_nfa.map(|l| 1.0 - 10f64.powf(l).min(1.0))
 }
 
 impl QueryResult {

@@ -50,10 +50,13 @@ pub struct ServeConfig {
     pub timeout: Duration,
     /// Limits on the decoded query image.
     pub decode: DecodeLimits,
+    /// The localizer every request runs.
+    pub method: Method,
 }
 
 impl Default for ServeConfig {
-    /// `127.0.0.1:8080`, one worker per core, a queue of twice that, 16 MiB bodies, 30 s.
+    /// `127.0.0.1:8080`, one worker per core, a queue of twice that, 16 MiB bodies, 30 s,
+    /// the default method.
     fn default() -> Self {
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         ServeConfig {
@@ -63,6 +66,7 @@ impl Default for ServeConfig {
             max_body_bytes: 16 << 20,
             timeout: Duration::from_secs(30),
             decode: DecodeLimits::default(),
+            method: Method::DEFAULT,
         }
     }
 }
@@ -633,7 +637,7 @@ fn localize_parts(
     let t = Instant::now();
     let result = localize_with(
         &s.map,
-        Method::Matloc,
+        s.config.method,
         &parts.name,
         &image,
         &camera,

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use common::*;
 use matloc_core::pose::cam_from_world_from_colmap;
 use matloc_pipeline::LoadedMap;
-use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use matloc_pipeline::methods::{MethodOptions, localize_with};
 use matloc_serve::query::to_map_resolution;
 use matloc_serve::{ServeConfig, ServerHandle};
 use serde_json::Value;
@@ -44,7 +44,7 @@ fn expected(map: &LoadedMap, path: &std::path::Path, camera: &str) -> Value {
     let (image, camera) = to_map_resolution(image, camera, map.camera().as_ref(), "q").unwrap();
     let r = localize_with(
         map,
-        Method::Matloc,
+        config().method,
         "q",
         &image,
         &camera,
@@ -107,7 +107,7 @@ fn well_formed_queries_answer_as_the_localizer_does() {
         assert_eq!(status, 200, "{text}");
         let got = json(&text);
         assert_eq!(got["name"], name.as_str());
-        assert_eq!(got["method"], "matloc");
+        assert_eq!(got["method"], config().method.name());
         assert_eq!(got["world"], "data");
         let status = got["status"].as_str().unwrap();
         assert_eq!(status == "localized", got["localized"] == true, "{got}");

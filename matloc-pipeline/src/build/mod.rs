@@ -7,7 +7,7 @@
 //! where it stopped, and a sub-NeRF interrupted mid-training resumes from its own checkpoint.
 //!
 //! The build is three steps that also run as separate jobs: [`plan_map`] (dataset checks,
-//! surface, partition), [`build_block`] per block (sub-NeRF, pairs, encoder, selection; as a job,
+//! surface, partition, the keypoint structure of the training images), [`build_block`] per block (sub-NeRF, pairs, encoder, selection; as a job,
 //! [`run_block_job`] records into the block's own record, so blocks build side by side on
 //! several machines) and [`finish_map`] (merges the block records, place predictor,
 //! calibration). [`build_map`] runs the three in one process.
@@ -20,6 +20,7 @@ pub mod pairs;
 pub mod partition;
 pub mod place;
 pub mod select;
+pub mod structure;
 
 use std::path::Path;
 
@@ -153,6 +154,7 @@ pub fn plan_map_with(
         map.save()?;
     }
     let partition = partition::run(&working, &mut map, config, partitioner, progress)?;
+    structure::run(&working, &mut map, config, progress)?;
     Ok(Planned {
         map,
         dataset: working,

@@ -13,6 +13,9 @@ pub const SURFACE_FILE: &str = "surface.json";
 /// The sparse points the partition's surface came from, when it came from points (PLY).
 pub const SURFACE_POINTS_FILE: &str = "surface_points.ply";
 
+/// The keypoint structure of the training images (`matloc_structure::StructureMap`).
+pub const STRUCTURE_FILE: &str = "structure.safetensors";
+
 /// Name of the job plan inside the map (`matloc map plan`).
 pub const PLAN_FILE: &str = "plan.json";
 
@@ -133,6 +136,7 @@ pub fn stage_files(stage: &str) -> Vec<String> {
                 .map(|f| format!("{PLACE_DIR}/{f}"))
                 .collect(),
             "calibration" => vec![CONFIDENCE_FILE.to_string()],
+            "structure" => vec![STRUCTURE_FILE.to_string()],
             _ => Vec::new(),
         },
         Some((kind, b)) => match (kind, block(b)) {

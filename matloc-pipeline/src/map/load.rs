@@ -442,6 +442,9 @@ pub struct LoadedMap {
     /// Calibrated bound on an accepted pose's rotation from its coarse pose (`None`: the
     /// configured one).
     pub max_accept_rotation_deg: Option<f64>,
+    /// The keypoint structure of the training images, when the map has one (maps built
+    /// before the structure stage, or with it disabled, do not).
+    pub structure: Option<matloc_structure::StructureMap>,
 }
 
 impl LoadedMap {
@@ -502,6 +505,15 @@ impl LoadedMap {
         }
         let solver = components.solver(&config.localize);
         let record: CalibrationRecord = dir.read_json(CONFIDENCE_FILE)?;
+        let structure = if dir.stage_done("structure") {
+            let bytes = dir.read_file(crate::map::layout::STRUCTURE_FILE)?;
+            Some(matloc_structure::StructureMap::from_bytes(
+                &bytes,
+                &root.join(crate::map::layout::STRUCTURE_FILE),
+            )?)
+        } else {
+            None
+        };
         Ok(Self {
             dir,
             config,
@@ -511,6 +523,7 @@ impl LoadedMap {
             solver,
             confidence: record.model,
             max_accept_rotation_deg: record.max_accept_rotation_deg,
+            structure,
         })
     }
 
