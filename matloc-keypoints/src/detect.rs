@@ -487,7 +487,10 @@ mod tests {
         }
         let cx = kps.iter().map(|k| k.x).sum::<f32>() / 4.0;
         let cy = kps.iter().map(|k| k.y).sum::<f32>() / 4.0;
-        assert!((cx - 48.0).abs() < 0.05 && (cy - 48.0).abs() < 0.05, "{cx} {cy}");
+        assert!(
+            (cx - 48.0).abs() < 0.05 && (cy - 48.0).abs() < 0.05,
+            "{cx} {cy}"
+        );
     }
 
     #[test]
