@@ -268,12 +268,30 @@ fn localize_structure(
         .iter()
         .enumerate()
         .filter_map(|(i, h)| {
+            let block = h.block.unwrap_or(0);
             let tried: Vec<_> = r.starts.iter().filter(|s| s.start == i).collect();
-            let last = tried.last()?;
+            let Some(last) = tried.last() else {
+                // A place another process serves is reported (the server answers
+                // `outside_blocks` from it); one left after an accepted pose is not.
+                return (!map.serves(block)).then(|| HypothesisReport {
+                    group: h.group,
+                    score: h.score,
+                    block,
+                    coarse_cam_from_world: h.cam_from_world,
+                    matches: 0,
+                    inliers: 0,
+                    confidence: 0.0,
+                    passes: 0,
+                    accepted: false,
+                    failure: Some(format!("block {block} is not served by this process")),
+                    alignment: 0.0,
+                    log10_nfa: None,
+                });
+            };
             Some(HypothesisReport {
                 group: h.group,
                 score: h.score,
-                block: h.block.unwrap_or(0),
+                block,
                 coarse_cam_from_world: h.cam_from_world,
                 matches: last.matches,
                 inliers: last.inliers,

@@ -21,7 +21,8 @@ use crate::store::StructureMap;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StructureOptions {
-    /// Query keypoints (the map's keypoints were detected with the same detector).
+    /// Query keypoints (the map's keypoints were detected with the same detector: detection
+    /// at 2×, as the structure stage's triangulation does).
     pub keypoints: KeypointConfig,
     /// Descriptor matching between the query and each nearby training image.
     pub matching: MatchConfig,
@@ -48,6 +49,7 @@ impl Default for StructureOptions {
         StructureOptions {
             keypoints: KeypointConfig {
                 max_keypoints: 2000,
+                upsample: true,
                 ..KeypointConfig::default()
             },
             matching: MatchConfig::default(),

@@ -52,6 +52,10 @@ pub struct TriangulateConfig {
     /// Views a point needs: a third view rejects the consistent false depth that a repeated
     /// texture matched with one shift gives in a pair.
     pub min_track_len: usize,
+    /// Detect the keypoints on the images upsampled 2× (`KeypointConfig::upsample`): finer
+    /// positions, more points, and more outliers in them; off for the surface, on for the
+    /// map's keypoint structure.
+    pub upsample: bool,
 }
 
 impl Default for TriangulateConfig {
@@ -64,6 +68,7 @@ impl Default for TriangulateConfig {
             min_angle_deg: 1.5,
             max_view_angle_deg: 75.0,
             min_track_len: 2,
+            upsample: false,
         }
     }
 }

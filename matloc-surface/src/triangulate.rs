@@ -144,6 +144,7 @@ fn features_of(
     let (image, camera) = load_frame_image(dataset, frame, factor)?;
     let kp_config = KeypointConfig {
         max_keypoints: config.max_keypoints,
+        upsample: config.upsample,
         ..KeypointConfig::default()
     };
     let (keypoints, descriptors) = detect_and_describe(&GrayImage::from_image(&image), &kp_config);

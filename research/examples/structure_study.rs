@@ -50,6 +50,7 @@ fn main() {
 
     let train = dataset.split_indices(Split::Train);
     let config = TriangulateConfig {
+        upsample: true,
         max_side: dataset
             .frames
             .iter()

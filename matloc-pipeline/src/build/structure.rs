@@ -31,7 +31,10 @@ impl Default for StructureStageConfig {
     fn default() -> Self {
         StructureStageConfig {
             enabled: true,
-            triangulate: matloc_surface::TriangulateConfig::default(),
+            triangulate: matloc_surface::TriangulateConfig {
+                upsample: true,
+                ..matloc_surface::TriangulateConfig::default()
+            },
         }
     }
 }
