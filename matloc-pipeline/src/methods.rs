@@ -270,39 +270,39 @@ fn localize_structure(
         .filter_map(|(i, h)| {
             let block = h.block.unwrap_or(0);
             let tried: Vec<_> = r.starts.iter().filter(|s| s.start == i).collect();
-            let Some(last) = tried.last() else {
-                // A place another process serves is reported (the server answers
-                // `outside_blocks` from it); one left after an accepted pose is not.
-                return (!map.serves(block)).then(|| HypothesisReport {
-                    group: h.group,
-                    score: h.score,
-                    block,
-                    coarse_cam_from_world: h.cam_from_world,
-                    matches: 0,
-                    inliers: 0,
-                    confidence: 0.0,
-                    passes: 0,
-                    accepted: false,
-                    failure: Some(format!("block {block} is not served by this process")),
-                    alignment: 0.0,
-                    log10_nfa: None,
-                });
-            };
-            Some(HypothesisReport {
+            let mut report = HypothesisReport {
                 group: h.group,
                 score: h.score,
                 block,
                 coarse_cam_from_world: h.cam_from_world,
-                matches: last.matches,
-                inliers: last.inliers,
-                confidence: nfa_confidence(last.log10_nfa).unwrap_or(0.0),
+                matches: 0,
+                inliers: 0,
+                confidence: 0.0,
                 passes: tried.len(),
-                accepted: r.cam_from_world.is_some() && tried.iter().any(|s| s.accepted),
-                failure: (last.images == 0)
-                    .then(|| "no training image looks the way this hypothesis does".into()),
+                accepted: false,
+                failure: None,
                 alignment: 0.0,
-                log10_nfa: last.log10_nfa,
-            })
+                log10_nfa: None,
+            };
+            match tried.last() {
+                Some(last) => {
+                    report.matches = last.matches;
+                    report.inliers = last.inliers;
+                    report.confidence = nfa_confidence(last.log10_nfa).unwrap_or(0.0);
+                    report.accepted =
+                        r.cam_from_world.is_some() && tried.iter().any(|s| s.accepted);
+                    report.failure = (last.images == 0)
+                        .then(|| "no training image looks the way this hypothesis does".into());
+                    report.log10_nfa = last.log10_nfa;
+                    Some(report)
+                }
+                // A place another process serves is reported (the server answers
+                // `outside_blocks` from it); one left after an accepted pose is not.
+                None => (!map.serves(block)).then(|| {
+                    report.failure = Some(format!("block {block} is not served by this process"));
+                    report
+                }),
+            }
         })
         .collect();
     let mut stage_seconds = vec![("place".to_string(), place_s)];
