@@ -37,7 +37,7 @@ pub struct MapConfig {
     /// Held-out views and the confidence calibration.
     pub calibration: CalibrationConfig,
     /// Triangulated keypoints of the training images (the structure localizer).
-    pub structure: crate::build::structure::StructureStageConfig,
+    pub structure: StructureStageConfig,
     /// Localizer settings stored with the map (the confidence model is replaced by the
     /// calibrated one when the map is loaded).
     pub localize: LocalizeOptions,
@@ -349,6 +349,29 @@ impl Default for CalibrationConfig {
             accept_threshold: 0.5,
             rotation_bound_margin: 2.5,
             min_rotation_bound_deg: 6.0,
+        }
+    }
+}
+
+/// Settings of the structure stage.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StructureStageConfig {
+    /// Build the structure (without it only the NeRF methods localize).
+    pub enabled: bool,
+    /// Keypoints, neighbours and gates of the triangulation; its `max_side` is replaced by
+    /// the map's working size, so that training images and queries are detected at one size.
+    pub triangulate: matloc_surface::TriangulateConfig,
+}
+
+impl Default for StructureStageConfig {
+    fn default() -> Self {
+        StructureStageConfig {
+            enabled: true,
+            triangulate: matloc_surface::TriangulateConfig {
+                upsample: true,
+                ..matloc_surface::TriangulateConfig::default()
+            },
         }
     }
 }

@@ -8,36 +8,12 @@ use std::time::Instant;
 use matloc_data::{Dataset, Split};
 use matloc_structure::StructureMap;
 use matloc_surface::triangulate::triangulate_tracks;
-use serde::{Deserialize, Serialize};
 
 use crate::build::common::BuildEvent;
 use crate::config::MapConfig;
 use crate::error::PipelineError;
 use crate::map::layout::STRUCTURE_FILE;
 use crate::map::manifest::MapDir;
-
-/// Settings of the structure stage.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct StructureStageConfig {
-    /// Build the structure (without it only the NeRF methods localize).
-    pub enabled: bool,
-    /// Keypoints, neighbours and gates of the triangulation; its `max_side` is replaced by
-    /// the map's working size, so that training images and queries are detected at one size.
-    pub triangulate: matloc_surface::TriangulateConfig,
-}
-
-impl Default for StructureStageConfig {
-    fn default() -> Self {
-        StructureStageConfig {
-            enabled: true,
-            triangulate: matloc_surface::TriangulateConfig {
-                upsample: true,
-                ..matloc_surface::TriangulateConfig::default()
-            },
-        }
-    }
-}
 
 /// Triangulates the training images of `dataset` (at the working resolution) and stores the
 /// structure, unless done earlier or disabled.
