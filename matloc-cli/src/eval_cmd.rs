@@ -9,9 +9,11 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use matloc_core::Pose;
 use matloc_pipeline::LoadedMap;
+use matloc_pipeline::eval::tables::RELIABILITY_BINS;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 use matloc_pipeline::{
-    MethodSummary, QueryOutcome, RecallThreshold, accuracy_table, summarize_with, timing_table,
+    MethodSummary, QueryOutcome, RecallThreshold, accuracy_table, reliability_table,
+    summarize_with, timing_table,
 };
 
 use crate::plot;
@@ -175,6 +177,45 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
     let path = args.out.join("report.md");
     write(&path, report.as_bytes())?;
     Ok(path)
+}
+
+/// What each row's method was given and when it refuses, from the options this run used.
+fn differences(runs: &[MethodRun], map: &LoadedMap) -> String {
+    let options = map.options();
+    let method_options = MethodOptions::default();
+    let structure = &method_options.structure;
+    let mut s = String::new();
+    for r in runs {
+        let text = match r.method {
+            Method::Structure => format!(
+                "the place predictor's top {} hypotheses, tried in order; refuses unless a pose has ≥ {} PnP inliers and NFA ≤ 10^{}; confidence 1 − NFA (not fitted)",
+                options.top_k.max(1),
+                structure.min_inliers,
+                structure.max_log10_nfa
+            ),
+            Method::Matloc => format!(
+                "the same top {} hypotheses, tried in order; refuses below a calibrated confidence of {:.2} (fitted at build time on held-out training views: kept out of their block's encoder, not out of the place predictor) or a correction beyond {:.1}°",
+                options.top_k.max(1),
+                options.confidence.accept_threshold,
+                options.max_accept_rotation_deg
+            ),
+            Method::RgbKeypoints => format!(
+                "the top-1 hypothesis only (the paper's comparison); refuses only when PnP finds no consensus of {} inliers; no confidence",
+                method_options.keypoints.pnp.ransac.min_inliers
+            ),
+            Method::Inerf | Method::CurriculumInerf => {
+                "the top-1 hypothesis only; never refuses; no confidence".to_string()
+            }
+        };
+        let _ = writeln!(
+            s,
+            "- `{}` ({} queries): {text}.",
+            r.method,
+            r.outcomes.len()
+        );
+    }
+    s.push('\n');
+    s
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Result<()> {
@@ -369,15 +410,31 @@ fn report(
             continue;
         };
         for o in summaries.iter().filter(|x| x.method != name) {
+            let ratio = o.mean_seconds / base.mean_seconds.max(1e-9);
+            let (factor, word) = if ratio >= 1.0 {
+                (ratio, "faster")
+            } else {
+                (1.0 / ratio.max(1e-9), "slower")
+            };
             writeln!(
                 s,
-                "- {name} is {:.1}× faster than {} per query.",
-                o.mean_seconds / base.mean_seconds.max(1e-9),
+                "- {name} is {factor:.1}× {word} than {} per query.",
                 o.method
             )?;
         }
         writeln!(s)?;
     }
+    let reliability = reliability_table(&summaries);
+    if !reliability.is_empty() {
+        writeln!(s, "## Confidence reliability\n")?;
+        writeln!(
+            s,
+            "How well each method's confidence predicts a correct answer (a returned pose within the loosest threshold; a refused query is wrong), on these test queries: none of them was used to fit or choose a confidence. ECE: expected calibration error over {RELIABILITY_BINS} equal-width bins.\n"
+        )?;
+        writeln!(s, "{reliability}")?;
+    }
+    writeln!(s, "## What differs between the rows\n")?;
+    write!(s, "{}", differences(runs, map))?;
     writeln!(s, "## Plots\n")?;
     writeln!(
         s,

@@ -31,8 +31,8 @@ pub mod methods;
 pub use config::MapConfig;
 pub use error::PipelineError;
 pub use eval::{
-    MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
-    summarize_with, timing_table,
+    MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, Reliability, ReliabilityBin,
+    accuracy_table, reliability, reliability_table, summarize, summarize_with, timing_table,
 };
 pub use localizer::options::LocalizeOptions;
 pub use localizer::{

@@ -97,7 +97,8 @@ pub struct QueryResult {
     pub cam_from_world: Option<Pose>,
     /// Camera centre in world coordinates, when localized.
     pub camera_center: Option<[f64; 3]>,
-    /// Calibrated confidence (MatLoc) or `null`.
+    /// Confidence in the answer: MatLoc's calibrated model, the structure method's 1 − NFA
+    /// (0 when no consensus was found); `null` for the NeRF baselines.
     pub confidence: Option<f64>,
     /// PnP inliers (MatLoc, keypoints).
     pub inliers: usize,
@@ -316,7 +317,8 @@ fn localize_structure(
             .as_ref()
             .map(|p| camera_center(p).coords.into()),
         cam_from_world: r.cam_from_world,
-        confidence: nfa_confidence(r.log10_nfa),
+        // 0 when no start found a consensus to score.
+        confidence: Some(nfa_confidence(r.log10_nfa).unwrap_or(0.0)),
         inliers: r.inliers,
         iterations: r.starts.len() as u32,
         hypotheses,
@@ -342,6 +344,7 @@ impl QueryResult {
             stage_seconds: self.stage_seconds.clone(),
             total_seconds: self.total_seconds,
             iterations: Some(self.iterations),
+            confidence: self.confidence,
         }
     }
 }

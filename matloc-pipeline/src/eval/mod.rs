@@ -11,6 +11,6 @@ pub mod table4;
 pub mod tables;
 
 pub use tables::{
-    MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, accuracy_table, summarize,
-    summarize_with, timing_table,
+    MethodSummary, QueryOutcome, RECALL_THRESHOLDS, RecallThreshold, Reliability, ReliabilityBin,
+    accuracy_table, reliability, reliability_table, summarize, summarize_with, timing_table,
 };

@@ -87,6 +87,10 @@ pub struct QueryOutcome {
     /// Optimisation iterations, for iterative methods (iNeRF) or refinement passes.
     #[serde(default)]
     pub iterations: Option<u32>,
+    /// The method's confidence in its answer, when it has one (MatLoc's calibrated model,
+    /// the structure method's 1 − NFA).
+    #[serde(default)]
+    pub confidence: Option<f64>,
 }
 
 impl QueryOutcome {
@@ -132,6 +136,85 @@ pub struct MethodSummary {
     pub stage_mean_seconds: Vec<(String, f64)>,
     /// Mean iterations, when the method reports them.
     pub mean_iterations: Option<f64>,
+    /// How well the confidence predicts a correct answer, when the method reports one.
+    #[serde(default)]
+    pub reliability: Option<Reliability>,
+}
+
+/// Reliability of a confidence on a query set: equal-width bins of the confidence against
+/// the fraction of correct answers in each (a reliability diagram), and the expected
+/// calibration error. "Correct" is a returned pose within the loosest recall threshold (the
+/// false-accept boundary); a refused query is never correct.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Reliability {
+    /// Queries with a confidence.
+    pub queries: usize,
+    /// Expected calibration error: Σ over bins of (bin queries / queries) × |mean confidence
+    /// − fraction correct|.
+    pub ece: f64,
+    /// The bins that hold at least one query, in increasing confidence.
+    pub bins: Vec<ReliabilityBin>,
+}
+
+/// One bin of a [`Reliability`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReliabilityBin {
+    /// Confidence range `[lower, upper)` (the last bin includes 1).
+    pub lower: f64,
+    /// Upper end of the range.
+    pub upper: f64,
+    /// Queries in the bin.
+    pub queries: usize,
+    /// Their mean confidence.
+    pub mean_confidence: f64,
+    /// The fraction of them answered correctly.
+    pub fraction_correct: f64,
+}
+
+/// Equal-width confidence bins of [`Reliability`].
+pub const RELIABILITY_BINS: usize = 10;
+
+/// The reliability of `(confidence, correct)` pairs in [`RELIABILITY_BINS`] bins; `None` when
+/// there are none. Confidences outside [0, 1] (or NaN) count in the nearest end bin.
+pub fn reliability(samples: &[(f64, bool)]) -> Option<Reliability> {
+    if samples.is_empty() {
+        return None;
+    }
+    let nb = RELIABILITY_BINS;
+    let mut sum_conf = vec![0.0; nb];
+    let mut correct = vec![0usize; nb];
+    let mut count = vec![0usize; nb];
+    for &(c, ok) in samples {
+        let c = if c.is_nan() { 0.0 } else { c.clamp(0.0, 1.0) };
+        let b = ((c * nb as f64) as usize).min(nb - 1);
+        sum_conf[b] += c;
+        correct[b] += usize::from(ok);
+        count[b] += 1;
+    }
+    let n = samples.len() as f64;
+    let mut ece = 0.0;
+    let mut bins = Vec::new();
+    for b in 0..nb {
+        if count[b] == 0 {
+            continue;
+        }
+        let k = count[b] as f64;
+        let mean_confidence = sum_conf[b] / k;
+        let fraction_correct = correct[b] as f64 / k;
+        ece += k / n * (mean_confidence - fraction_correct).abs();
+        bins.push(ReliabilityBin {
+            lower: b as f64 / nb as f64,
+            upper: (b + 1) as f64 / nb as f64,
+            queries: count[b],
+            mean_confidence,
+            fraction_correct,
+        });
+    }
+    Some(Reliability {
+        queries: samples.len(),
+        ece,
+        bins,
+    })
 }
 
 /// Median of finite-or-infinite values (NaN for an empty slice); the mean of the two middle
@@ -207,6 +290,14 @@ pub fn summarize_with(
         })
         .expect("thresholds are not empty");
     let false_accepts = accepted.iter().filter(|e| !within(e, &loosest)).count();
+    let confidences: Vec<(f64, bool)> = outcomes
+        .iter()
+        .zip(&errors)
+        .filter_map(|(o, e)| {
+            o.confidence
+                .map(|c| (c, e.as_ref().is_some_and(|e| within(e, &loosest))))
+        })
+        .collect();
     let times: Vec<f64> = outcomes.iter().map(|o| o.total_seconds).collect();
     let mut stage_names: Vec<String> = Vec::new();
     for o in outcomes {
@@ -256,7 +347,41 @@ pub fn summarize_with(
         } else {
             Some(iterations.iter().sum::<f64>() / iterations.len() as f64)
         },
+        reliability: reliability(&confidences),
     }
+}
+
+/// Each method's confidence reliability as a markdown table (ECE, then the bins as
+/// `confidence range: queries, mean confidence → fraction correct`); empty when no method
+/// reports a confidence.
+pub fn reliability_table(summaries: &[MethodSummary]) -> String {
+    let mut s = String::new();
+    for m in summaries {
+        let Some(r) = &m.reliability else { continue };
+        if s.is_empty() {
+            s.push_str(
+                "| method | queries | ECE | bins: range — queries, mean confidence → fraction correct |\n|---|---|---|---|\n",
+            );
+        }
+        let bins: Vec<String> = r
+            .bins
+            .iter()
+            .map(|b| {
+                format!(
+                    "[{:.1}, {:.1}) — {}, {:.2} → {:.2}",
+                    b.lower, b.upper, b.queries, b.mean_confidence, b.fraction_correct
+                )
+            })
+            .collect();
+        s.push_str(&format!(
+            "| {} | {} | {:.3} | {} |\n",
+            m.method,
+            r.queries,
+            r.ece,
+            bins.join("; ")
+        ));
+    }
+    s
 }
 
 fn fmt_num(v: f64, decimals: usize) -> String {
@@ -348,6 +473,7 @@ mod tests {
             stage_seconds: vec![("match".into(), t / 2.0), ("pnp".into(), t / 2.0)],
             total_seconds: t,
             iterations: None,
+            confidence: None,
         }
     }
 
@@ -418,5 +544,45 @@ mod tests {
         assert_eq!(s.queries, 0);
         assert!(s.median_translation_m.is_nan());
         assert!(timing_table(&[s]).contains("| none | — |"));
+    }
+
+    #[test]
+    fn reliability_bins_confidence_against_correct_answers() {
+        let mut samples = Vec::new();
+        for k in 0..4 {
+            samples.push((0.25, k == 0)); // mean 0.25, 1/4 correct
+        }
+        for k in 0..4 {
+            samples.push((0.95, k < 2)); // mean 0.95, 2/4 correct: off by 0.45
+        }
+        let r = reliability(&samples).unwrap();
+        assert_eq!(r.queries, 8);
+        assert_eq!(r.bins.len(), 2);
+        assert_eq!(r.bins[0].queries, 4);
+        assert!((r.bins[0].lower - 0.2).abs() < 1e-12);
+        assert!((r.bins[1].fraction_correct - 0.5).abs() < 1e-12);
+        assert!((r.ece - 0.5 * 0.45).abs() < 1e-12, "{}", r.ece);
+        // Ends and NaN land in the end bins; nothing means no reliability.
+        let r = reliability(&[(1.0, true), (1.7, true), (-0.2, false), (f64::NAN, false)]).unwrap();
+        assert_eq!(r.bins.len(), 2);
+        assert!(r.ece.abs() < 1e-12);
+        assert!(reliability(&[]).is_none());
+    }
+
+    #[test]
+    fn a_refused_query_with_a_confidence_counts_as_wrong() {
+        let mut outs = vec![outcome(Some(0.1), 1.0), outcome(None, 1.0)];
+        outs[0].confidence = Some(0.9);
+        outs[1].confidence = Some(0.1);
+        let s = summarize("m", &outs);
+        let r = s.reliability.as_ref().unwrap();
+        assert_eq!(r.queries, 2);
+        assert!((r.ece - 0.1).abs() < 1e-12, "{}", r.ece);
+        assert!(reliability_table(&[s]).contains("| m | 2 | 0.100 |"));
+        assert!(
+            summarize("n", &[outcome(Some(0.1), 1.0)])
+                .reliability
+                .is_none()
+        );
     }
 }
