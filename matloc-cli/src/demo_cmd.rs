@@ -27,8 +27,9 @@ pub struct DemoArgs {
     /// Map build configuration (JSON) instead of the demo's.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Test queries for the iNeRF baselines (they take tens of seconds each on the CPU).
-    #[arg(long, default_value_t = 4)]
+    /// Test queries for the iNeRF baselines (5–10 s each on 2 cores): 20, so that their rows
+    /// rest on enough queries to compare.
+    #[arg(long, default_value_t = 20)]
     inerf_queries: usize,
 }
 
