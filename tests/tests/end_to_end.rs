@@ -11,6 +11,9 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+mod bin_path;
+use bin_path::matloc_bin;
+
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_core::{Image, Pose};
 use matloc_data::{Dataset, PointSource, Split, read_dataset};
@@ -248,6 +251,68 @@ fn the_default_method_localizes_test_views_to_centimetres() {
         "median {:.3} m",
         median(&errors)
     );
+}
+
+/// `matloc eval` as a user runs it: the report has the accuracy and time tables, the
+/// confidence reliability of the methods that have a confidence (on the test views, which
+/// nothing in the build fitted on), and what each row's method was given.
+#[test]
+fn eval_reports_confidence_reliability_and_what_differs_between_rows() {
+    let b = built();
+    let out = b.map_dir.parent().unwrap().join("eval");
+    let _ = std::fs::remove_dir_all(&out);
+    let o = std::process::Command::new(matloc_bin())
+        .arg("--quiet")
+        .arg("eval")
+        .arg("--map")
+        .arg(&b.map_dir)
+        .arg("--data")
+        .arg(b.map_dir.parent().unwrap().join("data"))
+        .args(["--methods", "structure,matloc,rgb-keypoints", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let log = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(o.status.success(), "{log}");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    eprintln!("{report}");
+    for needle in [
+        "## Table 1",
+        "## Table 2",
+        "## Confidence reliability",
+        "| structure | 10 |",
+        "| matloc | 10 |",
+        "## What differs between the rows",
+        "- `structure` (10 queries): the place predictor's top 3 hypotheses",
+        "- `rgb-keypoints` (10 queries): the top-1 hypothesis only",
+    ] {
+        assert!(
+            report.contains(needle),
+            "{needle:?} missing from the report"
+        );
+    }
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    for m in summary.as_array().unwrap() {
+        let r = &m["reliability"];
+        if m["method"] == "rgb-keypoints" {
+            assert!(r.is_null(), "{m}");
+            continue;
+        }
+        let ece = r["ece"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&ece), "{m}");
+        let binned: u64 = r["bins"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|b| b["queries"].as_u64().unwrap())
+            .sum();
+        assert_eq!(binned, 10, "{m}");
+    }
 }
 
 #[test]
@@ -558,6 +623,7 @@ fn maps_without_depth_localize_within_1_5x_of_the_depth_build() {
     assert_eq!(reference.surface, "depth_maps");
     let mut config = tiny_config();
     config.encoder.train.steps = 5;
+    config.encoder.train.head_phase.steps = 0;
     let runs = [
         (
             bare,

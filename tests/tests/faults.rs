@@ -18,14 +18,15 @@ use std::time::{Duration, Instant};
 use matloc_core::hash::splitmix64_next;
 use matloc_synth::{SynthConfig, synthesize};
 
-/// The cheapest map config of the end-to-end tests (`tests/tests/end_to_end.rs`).
+/// The cheapest map config of the end-to-end tests (`tests/tests/end_to_end.rs`), without the
+/// encoder's head-only phase (nothing here measures the learned encoder).
 const TINY_CONFIG: &str = r#"{
   "nerf": {"steps": 300, "checkpoint_every": 100,
     "model_overrides": {"field": {"log2_table_size": 15, "max_resolution": 512},
       "train": {"batch_rays": 1024, "march": {"steps": 128, "max_samples": 24},
                 "occupancy_warmup_steps": 32},
       "render": {"march": {"steps": 128}}}},
-  "encoder": {"train": {"steps": 150}},
+  "encoder": {"train": {"steps": 150, "head_phase": {"steps": 0}}},
   "place": {"train": {"epochs": 20}},
   "calibration": {"max_views": 8}
 }"#;
