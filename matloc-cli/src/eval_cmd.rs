@@ -173,16 +173,15 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
     plot_cdf(&runs, &args.out.join("error_cdf.png"))?;
     plot_topdown(&runs, &dataset, &map, &args.out.join("topdown.png"))?;
     plot_stage_times(&runs, &args.out.join("stage_times.png"))?;
-    let report = report(&runs, &map, &dataset, args)?;
+    let report = report(&runs, &map, &dataset, args, &options)?;
     let path = args.out.join("report.md");
     write(&path, report.as_bytes())?;
     Ok(path)
 }
 
 /// What each row's method was given and when it refuses, from the options this run used.
-fn differences(runs: &[MethodRun], map: &LoadedMap) -> String {
+fn differences(runs: &[MethodRun], map: &LoadedMap, method_options: &MethodOptions) -> String {
     let options = map.options();
-    let method_options = MethodOptions::default();
     let structure = &method_options.structure;
     let mut s = String::new();
     for r in runs {
@@ -347,6 +346,7 @@ fn report(
     map: &LoadedMap,
     dataset: &matloc_data::Dataset,
     args: &EvalArgs,
+    method_options: &MethodOptions,
 ) -> Result<String> {
     let mut s = String::new();
     writeln!(s, "# matloc evaluation report\n")?;
@@ -434,7 +434,7 @@ fn report(
         writeln!(s, "{reliability}")?;
     }
     writeln!(s, "## What differs between the rows\n")?;
-    write!(s, "{}", differences(runs, map))?;
+    write!(s, "{}", differences(runs, map, method_options))?;
     writeln!(s, "## Plots\n")?;
     writeln!(
         s,
