@@ -98,6 +98,26 @@ impl GrayImage {
         }
     }
 
+    /// Unsharp mask: `v + amount · (v − blur_σ(v))`, clamped to `[0, 1]`; `amount ≤ 0` (or
+    /// not finite) leaves the image as it is.
+    pub fn unsharp(&self, amount: f32, sigma: f32) -> Self {
+        if !(amount > 0.0 && amount.is_finite()) {
+            return self.clone();
+        }
+        let blurred = self.gaussian_blur(sigma);
+        let data = self
+            .data
+            .iter()
+            .zip(&blurred.data)
+            .map(|(v, b)| (v + amount * (v - b)).clamp(0.0, 1.0))
+            .collect();
+        Self {
+            width: self.width,
+            height: self.height,
+            data,
+        }
+    }
+
     /// Separable Gaussian blur with standard deviation `sigma` (radius ⌈3σ⌉, clamped edges).
     pub fn gaussian_blur(&self, sigma: f32) -> Self {
         if sigma <= 0.0 || self.data.is_empty() {
@@ -136,6 +156,37 @@ impl GrayImage {
             width: self.width,
             height: self.height,
             data: out,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// The mask keeps flat regions, stays in [0, 1], and steepens an edge.
+        #[test]
+        fn unsharp_keeps_flats_and_range_and_steepens_edges(
+            level in 0.0f32..1.0,
+            amount in 0.1f32..3.0,
+            edge in 3usize..13,
+        ) {
+            let (w, h) = (16, 8);
+            let flat = GrayImage::from_vec(w, h, vec![level; w * h]).unwrap();
+            for v in flat.unsharp(amount, 1.0).data() {
+                prop_assert!((v - level).abs() < 1e-5);
+            }
+            let step: Vec<f32> = (0..w * h).map(|i| if i % w < edge { 0.2 } else { 0.8 }).collect();
+            let img = GrayImage::from_vec(w, h, step).unwrap();
+            let sharp = img.unsharp(amount, 1.0);
+            prop_assert!(sharp.data().iter().all(|v| (0.0..=1.0).contains(v)));
+            let jump = |g: &GrayImage| g.at(edge, 4) - g.at(edge - 1, 4);
+            prop_assert!(jump(&sharp) > jump(&img.gaussian_blur(1.0)));
+            prop_assert!(jump(&sharp) >= jump(&img) - 1e-6);
+            // No mask at all for a non-positive amount.
+            prop_assert_eq!(img.unsharp(0.0, 1.0), img.clone());
         }
     }
 }

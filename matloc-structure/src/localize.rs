@@ -42,6 +42,10 @@ pub struct StructureOptions {
     pub max_log10_nfa: f64,
     /// Solve again from the images nearest the first estimate.
     pub second_pass: bool,
+    /// Unsharp-mask amount of the query's gray image before detection (σ = 1 px; 0 = off):
+    /// `small`'s second flight (0.5 px blur, noise, other light) localized to a median of
+    /// 0.050 m without it and 0.037 m with 1.0, the same flight to 0.030 and 0.034 m.
+    pub query_sharpen: f32,
 }
 
 impl Default for StructureOptions {
@@ -59,6 +63,7 @@ impl Default for StructureOptions {
             min_inliers: 15,
             max_log10_nfa: -2.0,
             second_pass: true,
+            query_sharpen: 1.0,
         }
     }
 }
@@ -120,8 +125,10 @@ pub fn localize(
         });
     }
     let t = Instant::now();
-    let (keypoints, descriptors) =
-        detect_and_describe(&GrayImage::from_image(image), &options.keypoints);
+    // Sharpened before detection: a photo from another flight or camera is softer than the
+    // map's training images.
+    let gray = GrayImage::from_image(image).unsharp(options.query_sharpen, 1.0);
+    let (keypoints, descriptors) = detect_and_describe(&gray, &options.keypoints);
     let mut seconds = vec![("keypoints".to_string(), t.elapsed().as_secs_f64())];
     let mut time = Timer::default();
     let query = Query {
