@@ -121,6 +121,10 @@ pub struct SlurmArgs {
     /// CPUs per block job (also the job's worker threads).
     #[arg(long, default_value_t = 4)]
     pub cpus_per_task: u32,
+    /// CPUs of the finish job (place classifier and calibration, once for the whole map;
+    /// default: --cpus-per-task).
+    #[arg(long)]
+    pub finish_cpus: Option<u32>,
     /// Memory per job, as Slurm writes it (e.g. 8G).
     #[arg(long, default_value = "8G")]
     pub mem: String,
@@ -460,6 +464,8 @@ fn shell_line(argv: &[String]) -> String {
 fn slurm_scripts(plan: &PlanRecord, a: &SlurmArgs, out: &Path) -> Result<Vec<(String, String)>> {
     anyhow::ensure!(!plan.blocks.is_empty(), "the plan has no blocks");
     anyhow::ensure!(a.cpus_per_task >= 1, "--cpus-per-task must be at least 1");
+    let finish_cpus = a.finish_cpus.unwrap_or(a.cpus_per_task);
+    anyhow::ensure!(finish_cpus >= 1, "--finish-cpus must be at least 1");
     let logs = out.join("logs");
     let program = match &a.matloc {
         Some(p) => p.display().to_string(),
@@ -519,7 +525,7 @@ fn slurm_scripts(plan: &PlanRecord, a: &SlurmArgs, out: &Path) -> Result<Vec<(St
          set -euo pipefail\n\
          export RAYON_NUM_THREADS=\"${{SLURM_CPUS_PER_TASK:-1}}\"\n\
          exec {}\n",
-        header("matloc-finish", "finish.log", a.cpus_per_task),
+        header("matloc-finish", "finish.log", finish_cpus),
         with_program(&plan.finish_command)
     );
     let submit = format!(
@@ -876,6 +882,7 @@ mod tests {
             map: "/maps/m 1".into(),
             partition: Some("cpu".into()),
             cpus_per_task: 8,
+            finish_cpus: Some(32),
             mem: "16G".into(),
             time: "04:00:00".into(),
             account: None,
@@ -899,7 +906,9 @@ mod tests {
             assert!(blocks.contains(line), "{line} not in\n{blocks}");
         }
         assert!(!blocks.contains("--account"), "{blocks}");
-        assert!(get("finish.sbatch").contains("exec /bin/matloc map finish '/maps/m 1'"));
+        let finish = get("finish.sbatch");
+        assert!(finish.contains("exec /bin/matloc map finish '/maps/m 1'"));
+        assert!(finish.contains("#SBATCH --cpus-per-task=32"), "{finish}");
         assert!(get("submit.sh").contains("--dependency=afterok:\"$array\" finish.sbatch"));
         // A plan whose commands do not end with the block id is refused.
         let mut bad = plan.clone();

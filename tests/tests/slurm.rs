@@ -193,10 +193,18 @@ fn a_map_built_as_slurm_jobs_matches_the_in_process_build() {
     let plan: serde_json::Value =
         serde_json::from_slice(&std::fs::read(map_dir.join("plan.json")).unwrap()).unwrap();
     assert_eq!(plan["blocks"], serde_json::json!([0, 1]), "{plan}");
+    // The finish job (place classifier, calibration) gets up to two CPUs of the one node.
+    let finish_cpus = std::thread::available_parallelism().map_or(1, |n| n.get().min(2));
     run(Command::new(&matloc)
         .args(["map", "slurm"])
         .arg(&map_dir)
-        .args(["--cpus-per-task", "1", "--mem", "1G", "--time", "00:30:00"]));
+        .args([
+            "--cpus-per-task",
+            "1",
+            "--finish-cpus",
+            &finish_cpus.to_string(),
+        ])
+        .args(["--mem", "1G", "--time", "00:30:00"]));
     let scripts = map_dir.join("slurm");
     let blocks_script = scripts.join("blocks.sbatch");
     let text = std::fs::read_to_string(&blocks_script).unwrap();
