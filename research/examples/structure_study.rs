@@ -3,7 +3,9 @@
 //! start pose (the true pose moved by OFFSET metres in a fixed direction per view, and 2°),
 //! so that the figures measure matching and PnP without the place predictor. With
 //! `QUERIES=DIR` the queries are that dataset's test split instead (e.g. the second flight
-//! from `matloc synth --second-flight`, same poses, other light and lens).
+//! from `matloc synth --second-flight`, same poses, other light and lens). With
+//! `STRUCTURE_OPTIONS='{"neighbours": 10}'` (JSON, fields of `StructureOptions`) the
+//! localizer's settings differ from the defaults in those fields.
 //!
 //! `cargo run --release -p matloc-research --example structure_study -- DATA [OFFSET_M]`
 
@@ -70,7 +72,10 @@ fn main() {
         t.elapsed().as_secs_f64()
     );
 
-    let options = StructureOptions::default();
+    let options: StructureOptions = std::env::var("STRUCTURE_OPTIONS").map_or_else(
+        |_| StructureOptions::default(),
+        |json| serde_json::from_str(&json).expect("STRUCTURE_OPTIONS: StructureOptions JSON"),
+    );
     let (mut dt, mut dr, mut seconds) = (Vec::new(), Vec::new(), 0.0);
     let (mut within_25cm, mut within_1m, mut refused) = (0, 0, 0);
     for (i, f) in queries.split(Split::Test).enumerate() {
