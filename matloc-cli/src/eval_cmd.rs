@@ -187,13 +187,14 @@ fn differences(runs: &[MethodRun], map: &LoadedMap, method_options: &MethodOptio
     for r in runs {
         let text = match r.method {
             Method::Structure => format!(
-                "the place predictor's top {} hypotheses, tried in order; refuses unless a pose has ≥ {} PnP inliers and NFA ≤ 10^{}; confidence 1 − NFA (not fitted)",
+                "the place predictor's top {} hypotheses (MatLoc gets the first {}), tried in order; refuses unless a pose has ≥ {} PnP inliers and NFA ≤ 10^{} (false alarms counted over the starts tried); confidence 1 − NFA (not fitted)",
+                options.top_k.max(structure.place_hypotheses).max(1),
                 options.top_k.max(1),
                 structure.min_inliers,
                 structure.max_log10_nfa
             ),
             Method::Matloc => format!(
-                "the same top {} hypotheses, tried in order; refuses below a calibrated confidence of {:.2} (fitted at build time on held-out training views: kept out of their block's encoder, not out of the place predictor) or a correction beyond {:.1}°",
+                "the place predictor's top {} hypotheses, tried in order; refuses below a calibrated confidence of {:.2} (fitted at build time on held-out training views: kept out of their block's encoder, not out of the place predictor) or a correction beyond {:.1}°",
                 options.top_k.max(1),
                 options.confidence.accept_threshold,
                 options.max_accept_rotation_deg

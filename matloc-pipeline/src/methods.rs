@@ -230,7 +230,8 @@ pub fn localize_with(
     })
 }
 
-/// The structure method: the top-k place hypotheses as start poses, in order.
+/// The structure method: the top place hypotheses as start poses, in order
+/// (`StructureOptions::place_hypotheses` of them, at least the map's top-k).
 fn localize_structure(
     map: &LoadedMap,
     name: &str,
@@ -250,9 +251,8 @@ fn localize_structure(
     let (image, camera) = query_at_working_size(image, camera, localize_options.max_side);
     let (image, camera) = (image.as_ref(), &camera);
     let t = Instant::now();
-    let hyps = map
-        .place
-        .predict(image, camera, localize_options.top_k.max(1))?;
+    let k = localize_options.top_k.max(options.place_hypotheses).max(1);
+    let hyps = map.place.predict(image, camera, k)?;
     let place_s = t.elapsed().as_secs_f64();
     // In a process that serves some blocks, the places are tried up to the first one in a
     // block it does not serve (a prefix, so the indices stay the hypotheses'): when the best

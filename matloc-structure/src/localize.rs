@@ -38,8 +38,15 @@ pub struct StructureOptions {
     pub min_inliers: usize,
     /// Largest base-10 number of false alarms of an accepted consensus (a chance match
     /// falls inside the inlier threshold with the probability of its disk's share of the
-    /// image).
+    /// image), counted over the starts tried so far: the `i`-th start (from 0) adds
+    /// `log10(i + 1)`, so that trying more starts does not make a chance consensus likelier
+    /// to pass.
     pub max_log10_nfa: f64,
+    /// Place hypotheses a caller tries as starts, in order, up to the first accepted (the
+    /// structure method of `matloc-pipeline` asks the place predictor for this many, or the
+    /// map's top-k when that is more): a refused start costs a few hundredths of a second,
+    /// and a photo from another day can rank the right place below the first three.
+    pub place_hypotheses: usize,
     /// Solve again from the images nearest the first estimate.
     pub second_pass: bool,
     /// Unsharp-mask amount of the query's gray image before detection (σ = 1 px; 0 = off):
@@ -62,6 +69,7 @@ impl Default for StructureOptions {
             pnp: PnpOptions::default(),
             min_inliers: 15,
             max_log10_nfa: -2.0,
+            place_hypotheses: 10,
             second_pass: true,
             query_sharpen: 1.0,
         }
@@ -265,12 +273,13 @@ fn solve_from(
             let tau = options.pnp.ransac.max_error_px;
             let area = f64::from(query.camera.width) * f64::from(query.camera.height);
             let p_chance = (std::f64::consts::PI * tau * tau / area.max(1.0)).min(1.0);
+            // Bonferroni over the starts: start `index` is the (index + 1)-th test.
             let nfa = log10_nfa(
                 pixels.len(),
                 r.stats.num_inliers,
                 solver.minimal_sample(),
                 p_chance,
-            );
+            ) + ((index + 1) as f64).log10();
             report.inliers = r.stats.num_inliers;
             report.log10_nfa = Some(nfa);
             report.accepted =

@@ -287,7 +287,7 @@ fn eval_reports_confidence_reliability_and_what_differs_between_rows() {
         "| structure | 10 |",
         "| matloc | 10 |",
         "## What differs between the rows",
-        "- `structure` (10 queries): the place predictor's top 3 hypotheses",
+        "- `structure` (10 queries): the place predictor's top 10 hypotheses (MatLoc gets the first 3)",
         "- `rgb-keypoints` (10 queries): the top-1 hypothesis only",
     ] {
         assert!(

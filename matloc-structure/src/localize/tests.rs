@@ -169,6 +169,55 @@ fn an_unrelated_image_is_refused_and_a_wrong_start_falls_through() {
     assert!(r.starts[1].accepted);
 }
 
+/// The number of false alarms counts the starts tried: the same start at position 5 reports
+/// `log10(6)` more than at position 0 (same RNG state, so the same consensus), and a
+/// threshold between the two accepts it only first.
+#[test]
+fn the_false_alarms_of_a_later_start_count_the_starts_before_it() {
+    let map = plane_structure();
+    let camera = camera();
+    let gt = pose_above(-3.0, 2.0, -0.1);
+    let query = render(&camera, &gt, ground);
+    let world_from_cam = pose_above(0.0, 0.0, 0.0).inverse();
+    let away = Pose::from_parts(
+        world_from_cam.translation,
+        world_from_cam.rotation * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 2.0),
+    )
+    .inverse();
+    let o = StructureOptions {
+        second_pass: false,
+        ..StructureOptions::default()
+    };
+    let run = |starts: &[Pose], o: &StructureOptions| {
+        localize(
+            &map,
+            &query,
+            &camera,
+            starts,
+            o,
+            &mut ChaCha8Rng::seed_from_u64(9),
+        )
+        .unwrap()
+    };
+    let first = run(&[gt], &o);
+    let later = run(&[away, away, away, away, away, gt], &o);
+    // Starts with no images draw nothing from the RNG: the same consensus either way.
+    assert!(later.starts[..5].iter().all(|s| s.images == 0));
+    assert_eq!(first.inliers, later.inliers);
+    let (a, b) = (first.log10_nfa.unwrap(), later.log10_nfa.unwrap());
+    assert!((b - a - 6f64.log10()).abs() < 1e-9, "{a} then {b}");
+    let between = StructureOptions {
+        max_log10_nfa: a + 0.5 * 6f64.log10(),
+        ..o
+    };
+    assert!(run(&[gt], &between).cam_from_world.is_some());
+    assert!(
+        run(&[away, away, away, away, away, gt], &between)
+            .cam_from_world
+            .is_none()
+    );
+}
+
 #[test]
 fn a_query_of_the_wrong_size_is_an_error() {
     let map = StructureMap::default();
