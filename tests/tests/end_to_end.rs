@@ -716,18 +716,26 @@ fn method_errors(
     for f in frames {
         let (image, camera) = matloc_data::images::load_frame_image(dataset, f, 1).unwrap();
         let r = localize_with(map, method, "q", &image, &camera, &options).unwrap();
-        errors.push(match r.cam_from_world {
-            Some(p) if within(&p, &f.cam_from_world, 5.0, 10.0) => {
-                translation_error_m(&p, &f.cam_from_world)
-            }
-            Some(_) => {
-                wrong += 1;
-                f64::INFINITY
-            }
-            None => f64::INFINITY,
-        });
+        errors.push(error_or_wrong(
+            r.cam_from_world,
+            &f.cam_from_world,
+            &mut wrong,
+        ));
     }
     (errors, wrong)
+}
+
+/// Translation error of a returned pose; ∞ when refused, and ∞ counted in `wrong` when
+/// returned outside 5 m / 10° (a false accept).
+fn error_or_wrong(est: Option<Pose>, truth: &Pose, wrong: &mut usize) -> f64 {
+    match est {
+        Some(p) if within(&p, truth, 5.0, 10.0) => translation_error_m(&p, truth),
+        Some(_) => {
+            *wrong += 1;
+            f64::INFINITY
+        }
+        None => f64::INFINITY,
+    }
 }
 
 fn count_within(errors: &[f64], t: f64) -> usize {
@@ -927,16 +935,11 @@ fn the_default_method_localizes_a_distorted_query_as_well_as_its_twin() {
             let image = matloc_synth::flight::render_second_flight(&world, &config, &lens, twin, i);
             let r =
                 localize_with(&map, Method::DEFAULT, "q", &image, &twin.camera, &options).unwrap();
-            out.push(match r.cam_from_world {
-                Some(p) if within(&p, &f.cam_from_world, 5.0, 10.0) => {
-                    translation_error_m(&p, &f.cam_from_world)
-                }
-                Some(_) => {
-                    wrong += 1;
-                    f64::INFINITY
-                }
-                None => f64::INFINITY,
-            });
+            out.push(error_or_wrong(
+                r.cam_from_world,
+                &f.cam_from_world,
+                &mut wrong,
+            ));
         }
         out
     };

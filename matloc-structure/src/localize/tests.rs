@@ -101,6 +101,16 @@ fn plane_structure() -> StructureMap {
     StructureMap::new(points, images).unwrap()
 }
 
+/// A start above the origin tilted 2 rad off nadir: no training image looks its way.
+fn looking_away() -> Pose {
+    let world_from_cam = pose_above(0.0, 0.0, 0.0).inverse();
+    Pose::from_parts(
+        world_from_cam.translation,
+        world_from_cam.rotation * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 2.0),
+    )
+    .inverse()
+}
+
 #[test]
 fn a_query_between_training_views_localizes_to_centimetres() {
     let map = plane_structure();
@@ -157,12 +167,7 @@ fn an_unrelated_image_is_refused_and_a_wrong_start_falls_through() {
     // A start looking the other way finds no images; the second start localizes.
     let gt = pose_above(-3.0, 2.0, -0.1);
     let query = render(&camera, &gt, ground);
-    let world_from_cam = pose_above(0.0, 0.0, 0.0).inverse();
-    let away = Pose::from_parts(
-        world_from_cam.translation,
-        world_from_cam.rotation * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 2.0),
-    )
-    .inverse();
+    let away = looking_away();
     let r = localize(&map, &query, &camera, &[away, gt], &o, &mut rng).unwrap();
     assert!(r.cam_from_world.is_some(), "{:?}", r.starts);
     assert_eq!((r.starts[0].images, r.starts[0].accepted), (0, false));
@@ -178,12 +183,7 @@ fn the_false_alarms_of_a_later_start_count_the_starts_before_it() {
     let camera = camera();
     let gt = pose_above(-3.0, 2.0, -0.1);
     let query = render(&camera, &gt, ground);
-    let world_from_cam = pose_above(0.0, 0.0, 0.0).inverse();
-    let away = Pose::from_parts(
-        world_from_cam.translation,
-        world_from_cam.rotation * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 2.0),
-    )
-    .inverse();
+    let away = looking_away();
     let o = StructureOptions {
         second_pass: false,
         ..StructureOptions::default()
