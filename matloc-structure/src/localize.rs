@@ -69,7 +69,7 @@ impl Default for StructureOptions {
             pnp: PnpOptions::default(),
             min_inliers: 15,
             max_log10_nfa: -2.0,
-            place_hypotheses: 10,
+            place_hypotheses: 30,
             second_pass: true,
             query_sharpen: 1.0,
         }
