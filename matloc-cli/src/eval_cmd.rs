@@ -188,7 +188,7 @@ fn differences(runs: &[MethodRun], map: &LoadedMap, method_options: &MethodOptio
         let text = match r.method {
             Method::Structure => format!(
                 "the place predictor's top {} hypotheses (MatLoc gets the first {}), tried in order; refuses unless a pose has ≥ {} PnP inliers and NFA ≤ 10^{} (false alarms counted over the starts tried); confidence 1 − NFA (not fitted)",
-                options.top_k.max(structure.place_hypotheses).max(1),
+                structure.hypotheses_to_try(options.top_k),
                 options.top_k.max(1),
                 structure.min_inliers,
                 structure.max_log10_nfa

@@ -251,7 +251,7 @@ fn localize_structure(
     let (image, camera) = query_at_working_size(image, camera, localize_options.max_side);
     let (image, camera) = (image.as_ref(), &camera);
     let t = Instant::now();
-    let k = localize_options.top_k.max(options.place_hypotheses).max(1);
+    let k = options.hypotheses_to_try(localize_options.top_k);
     let hyps = map.place.predict(image, camera, k)?;
     let place_s = t.elapsed().as_secs_f64();
     // In a process that serves some blocks, the places are tried up to the first one in a

@@ -76,6 +76,14 @@ impl Default for StructureOptions {
     }
 }
 
+impl StructureOptions {
+    /// Place hypotheses to try when the map's other methods get `top_k`: the more of
+    /// `place_hypotheses` and `top_k`, at least one.
+    pub fn hypotheses_to_try(&self, top_k: usize) -> usize {
+        top_k.max(self.place_hypotheses).max(1)
+    }
+}
+
 /// What one start gave.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StartReport {
