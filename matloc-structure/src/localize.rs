@@ -9,11 +9,12 @@ use matloc_keypoints::{
 };
 use matloc_pnp::significance::log10_nfa;
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
-use nalgebra::{Point2, Point3};
+use nalgebra::{Point2, Point3, Vector2, Vector3};
 use rand::RngCore;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::align::{AlignOptions, QueryPlanes, align, local_affine, template};
 use crate::error::StructureError;
 use crate::store::StructureMap;
 
@@ -53,6 +54,9 @@ pub struct StructureOptions {
     /// `small`'s second flight (0.5 px blur, noise, other light) localized to a median of
     /// 0.050 m without it and 0.037 m with 1.0, the same flight to 0.030 and 0.034 m.
     pub query_sharpen: f32,
+    /// Patch alignment of the accepted pose's correspondences to the training images, then
+    /// a last solve.
+    pub align: AlignOptions,
 }
 
 impl Default for StructureOptions {
@@ -72,6 +76,7 @@ impl Default for StructureOptions {
             place_hypotheses: 30,
             second_pass: true,
             query_sharpen: 1.0,
+            align: AlignOptions::default(),
         }
     }
 }
@@ -114,6 +119,9 @@ pub struct StructureResult {
     pub log10_nfa: Option<f64>,
     /// Per start tried, in order (a second pass appears as its own report).
     pub starts: Vec<StartReport>,
+    /// Inliers of the last solve on the aligned correspondences, whose pose is returned (0
+    /// when nothing was aligned: then the pose is the descriptor matches' own).
+    pub aligned_inliers: usize,
     /// Seconds per stage (`keypoints`, `match`, `pnp`).
     pub stage_seconds: Vec<(String, f64)>,
 }
@@ -121,6 +129,22 @@ pub struct StructureResult {
 struct Solve {
     pose: Option<Pose>,
     report: StartReport,
+    matches: Matches,
+    inliers: Vec<bool>,
+    /// The training images matched.
+    images: Vec<usize>,
+}
+
+/// A start's 2D–3D matches with where each came from.
+#[derive(Default)]
+struct Matches {
+    pixels: Vec<Point2<f64>>,
+    points: Vec<Point3<f64>>,
+    scores: Vec<f64>,
+    /// Per match: (training image, observation in it).
+    source: Vec<(u32, u32)>,
+    /// Per match: the point.
+    point: Vec<u32>,
 }
 
 /// Localizes `image` (taken with `camera`) from the start poses in order: the first accepted
@@ -154,6 +178,7 @@ pub fn localize(
     };
     let mut reports = Vec::new();
     let mut best: Option<Solve> = None;
+    let mut aligned_inliers = 0;
     for (i, start) in starts.iter().enumerate() {
         let first = solve_from(map, &query, start, i, options, rng, &mut time);
         reports.push(first.report.clone());
@@ -176,11 +201,39 @@ pub fn localize(
                 chosen = again;
             }
         }
+        // One pass: a second one, from the aligned pose, changed nothing on `small`.
+        if options.align.enabled
+            && let Some(pose) = chosen.pose
+        {
+            let t = Instant::now();
+            let refined = aligned(
+                map,
+                &QueryPlanes::new(&gray),
+                camera,
+                &pose,
+                &chosen,
+                &options.align,
+            );
+            time.align += t.elapsed().as_secs_f64();
+            if let Some(matches) = refined {
+                let again = solve_matches(matches, i, options, camera, rng, &mut time);
+                // The pose only: acceptance, inliers and false alarms stay those of the
+                // descriptor matches (the tracked points were found with this pose, so
+                // their consensus says nothing about whether it is right).
+                if again.report.accepted && again.report.inliers >= chosen.report.inliers {
+                    chosen.pose = again.pose;
+                    aligned_inliers = again.report.inliers;
+                }
+            }
+        }
         best = Some(chosen);
         break;
     }
     seconds.push(("match".to_string(), time.matching));
     seconds.push(("pnp".to_string(), time.pnp));
+    if options.align.enabled {
+        seconds.push(("align".to_string(), time.align));
+    }
     let accepted = best.as_ref().is_some_and(|b| b.report.accepted);
     Ok(StructureResult {
         cam_from_world: best.as_ref().filter(|_| accepted).and_then(|b| b.pose),
@@ -188,6 +241,7 @@ pub fn localize(
         matches: best.as_ref().map_or(0, |b| b.report.matches),
         log10_nfa: best.as_ref().and_then(|b| b.report.log10_nfa),
         starts: reports,
+        aligned_inliers,
         stage_seconds: seconds,
     })
 }
@@ -202,6 +256,7 @@ struct Query<'a> {
 struct Timer {
     matching: f64,
     pnp: f64,
+    align: f64,
 }
 
 /// The training images nearest `start` (camera centre) among those looking within the
@@ -223,6 +278,9 @@ fn nearest_images(map: &StructureMap, start: &Pose, options: &StructureOptions) 
         .collect()
 }
 
+/// A query keypoint's match: (Hamming distance, point, training image, observation).
+type Candidate = (u32, u32, u32, u32);
+
 fn solve_from(
     map: &StructureMap,
     query: &Query<'_>,
@@ -234,56 +292,76 @@ fn solve_from(
 ) -> Solve {
     let t = Instant::now();
     let images = nearest_images(map, start, options);
-    // Per query keypoint, its closest match (Hamming distance, point) over the images.
-    let per_image: Vec<Vec<(usize, u32, u32)>> = images
+    // Per query keypoint, its closest match (Hamming distance, point, image, observation)
+    // over the images.
+    let per_image: Vec<Vec<(usize, Candidate)>> = images
         .par_iter()
         .map(|&i| {
             let im = &map.images()[i];
             match_descriptors(query.descriptors, &im.descriptor, &options.matching)
                 .into_iter()
-                .map(|m| (m.a, m.distance, im.point[m.b]))
+                .map(|m| (m.a, (m.distance, im.point[m.b], i as u32, m.b as u32)))
                 .collect()
         })
         .collect();
-    let mut best: Vec<Option<(u32, u32)>> = vec![None; query.keypoints.len()];
-    for (q, d, p) in per_image.into_iter().flatten() {
-        if best[q].is_none_or(|(bd, _)| d < bd) {
-            best[q] = Some((d, p));
+    let mut best: Vec<Option<Candidate>> = vec![None; query.keypoints.len()];
+    for (q, c) in per_image.into_iter().flatten() {
+        if best[q].is_none_or(|(bd, ..)| c.0 < bd) {
+            best[q] = Some(c);
         }
     }
-    let (mut pixels, mut points, mut scores) = (Vec::new(), Vec::<Point3<f64>>::new(), Vec::new());
+    let mut matches = Matches::default();
     for (q, b) in best.iter().enumerate() {
-        if let Some((d, p)) = b {
+        if let Some((d, p, i, o)) = b {
             let k = &query.keypoints[q];
-            pixels.push(Point2::new(f64::from(k.x), f64::from(k.y)));
-            points.push(map.points()[*p as usize]);
-            scores.push(1.0 - f64::from(*d) / 256.0);
+            matches
+                .pixels
+                .push(Point2::new(f64::from(k.x), f64::from(k.y)));
+            matches.points.push(map.points()[*p as usize]);
+            matches.scores.push(1.0 - f64::from(*d) / 256.0);
+            matches.source.push((*i, *o));
+            matches.point.push(*p);
         }
     }
     time.matching += t.elapsed().as_secs_f64();
+    let mut solve = solve_matches(matches, index, options, query.camera, rng, time);
+    solve.report.images = images.len();
+    solve.images = images;
+    solve
+}
+
+/// Solves the pose of `matches` and judges it (start `index` for the false-alarm count).
+fn solve_matches(
+    matches: Matches,
+    index: usize,
+    options: &StructureOptions,
+    camera: &Camera,
+    rng: &mut dyn RngCore,
+    time: &mut Timer,
+) -> Solve {
     let t = Instant::now();
     let mut report = StartReport {
         start: index,
-        images: images.len(),
-        matches: pixels.len(),
+        images: 0,
+        matches: matches.pixels.len(),
         inliers: 0,
         log10_nfa: None,
         accepted: false,
     };
     let solver = LoRansacPnp::new(options.pnp.clone());
     let solved = solver.solve(
-        &PnpInput::new(query.camera, &pixels, &points).with_scores(&scores),
+        &PnpInput::new(camera, &matches.pixels, &matches.points).with_scores(&matches.scores),
         rng,
     );
     time.pnp += t.elapsed().as_secs_f64();
-    let pose = match solved {
+    let (pose, inliers) = match solved {
         Ok(r) => {
             let tau = options.pnp.ransac.max_error_px;
-            let area = f64::from(query.camera.width) * f64::from(query.camera.height);
+            let area = f64::from(camera.width) * f64::from(camera.height);
             let p_chance = (std::f64::consts::PI * tau * tau / area.max(1.0)).min(1.0);
             // Bonferroni over the starts: start `index` is the (index + 1)-th test.
             let nfa = log10_nfa(
-                pixels.len(),
+                matches.pixels.len(),
                 r.stats.num_inliers,
                 solver.minimal_sample(),
                 p_chance,
@@ -292,11 +370,129 @@ fn solve_from(
             report.log10_nfa = Some(nfa);
             report.accepted =
                 r.stats.num_inliers >= options.min_inliers && nfa <= options.max_log10_nfa;
-            Some(r.cam_from_world)
+            (Some(r.cam_from_world), r.inliers)
         }
-        Err(_) => None,
+        Err(_) => (None, Vec::new()),
     };
-    Solve { pose, report }
+    Solve {
+        pose,
+        report,
+        matches,
+        inliers,
+        images: Vec::new(),
+    }
+}
+
+/// `solve`'s matches with each inlier aligned under `pose`: its query pixel moved to where
+/// the patches of the point's observations in the start's training images fit (the mean
+/// over those that align), its point moved onto those observations' rays at its depth (the
+/// mean); with `options.track`, the points those images see that no match reached are added
+/// the same way from their projections. `None` when the map keeps no gray values or nothing
+/// aligned. Numbers behind each part: docs/DECISIONS.md, "Patch alignment".
+fn aligned(
+    map: &StructureMap,
+    planes: &QueryPlanes,
+    camera: &Camera,
+    pose: &Pose,
+    solve: &Solve,
+    options: &AlignOptions,
+) -> Option<Matches> {
+    let m = &solve.matches;
+    // One observation: the aligned query pixel and the point on the observation's ray.
+    let one = |img: u32, obs: u32, x: &Point3<f64>, from: Point2<f64>| {
+        let im = &map.images()[img as usize];
+        let app = im.appearance.as_ref()?;
+        let px = im.pixel.get(obs as usize)?;
+        let map_px = Point2::new(f64::from(px[0]), f64::from(px[1]));
+        let (_, affine) = local_affine(&app.camera, &im.cam_from_world, map_px, x, camera, pose)?;
+        let patch = template(
+            &app.gray,
+            app.camera.width as usize,
+            app.camera.height as usize,
+            map_px,
+            options.half_window,
+        )?;
+        let u = align(planes, &patch, &affine, from, options)?;
+        let c = camera_center(&im.cam_from_world);
+        let dir = im
+            .cam_from_world
+            .inverse()
+            .transform_vector(&app.camera.unproject(map_px)?);
+        let on_ray = c + dir * (x - c).dot(&dir);
+        Some((u.coords, on_ray.coords))
+    };
+    // Every observation of point `p` in the start's images (and in `also`): the means.
+    let over_track = |p: u32, from: Point2<f64>, also: Option<u32>| {
+        let x = &map.points()[p as usize];
+        let (mut u, mut y, mut n) = (Vector2::zeros(), Vector3::zeros(), 0usize);
+        for &(img, obs) in map.track(p as usize) {
+            if Some(img) != also && !solve.images.contains(&(img as usize)) {
+                continue;
+            }
+            if let Some((du, dy)) = one(img, obs, x, from) {
+                u += du;
+                y += dy;
+                n += 1;
+            }
+        }
+        (n > 0).then(|| (Point2::from(u / n as f64), Point3::from(y / n as f64)))
+    };
+    let moved: Vec<Option<(Point2<f64>, Point3<f64>)>> = (0..m.pixels.len())
+        .into_par_iter()
+        .map(|k| {
+            if !solve.inliers.get(k).copied().unwrap_or(false) {
+                return None;
+            }
+            over_track(m.point[k], m.pixels[k], Some(m.source[k].0))
+        })
+        .collect();
+    let mut tracked: Vec<(Point2<f64>, Point3<f64>, u32)> = Vec::new();
+    if options.track {
+        let mut seen: std::collections::HashSet<u32> = m.point.iter().copied().collect();
+        let mut candidates = Vec::new();
+        for &img in &solve.images {
+            for &p in &map.images()[img].point {
+                if seen.insert(p) {
+                    candidates.push(p);
+                }
+            }
+        }
+        tracked = candidates
+            .par_iter()
+            .filter_map(|&p| {
+                let from = camera.project_world(pose, &map.points()[p as usize])?;
+                if !camera.contains(from) {
+                    return None;
+                }
+                let (u, y) = over_track(p, from, None)?;
+                Some((u, y, p))
+            })
+            .collect();
+    }
+    if moved.iter().all(Option::is_none) {
+        return None;
+    }
+    let mut out = Matches {
+        pixels: m.pixels.clone(),
+        points: m.points.clone(),
+        scores: m.scores.clone(),
+        source: m.source.clone(),
+        point: m.point.clone(),
+    };
+    for (k, p) in moved.into_iter().enumerate() {
+        if let Some((p, x)) = p {
+            out.pixels[k] = p;
+            out.points[k] = x;
+        }
+    }
+    for (u, y, p) in tracked {
+        out.pixels.push(u);
+        out.points.push(y);
+        out.scores.push(0.5);
+        out.source.push(map.track(p as usize)[0]);
+        out.point.push(p);
+    }
+    Some(out)
 }
 
 #[cfg(test)]

@@ -1,9 +1,11 @@
 //! The stored structure: triangulated points and, per training image, the keypoints that
-//! observe them (position, descriptor, point), in one safetensors file.
+//! observe them (position, descriptor, point) and the image's camera and gray values (for
+//! patch alignment), in one safetensors file.
 
 use std::collections::HashMap;
 use std::path::Path;
 
+use matloc_core::Camera;
 use matloc_core::pose::{Pose, camera_center, viewing_direction};
 use matloc_keypoints::Descriptor;
 use matloc_surface::triangulate::TrackedPoints;
@@ -12,8 +14,12 @@ use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 
 use crate::error::StructureError;
 
-/// Format tag in the file's metadata.
-pub const STRUCTURE_FORMAT: &str = "matloc-structure/1";
+/// Format tag in the file's metadata: `/2` may carry the training images' cameras and gray
+/// values for patch alignment; `/1` files (without them) still load.
+pub const STRUCTURE_FORMAT: &str = "matloc-structure/2";
+
+/// The earlier format tag, read as `/2` without appearance.
+const STRUCTURE_FORMAT_V1: &str = "matloc-structure/1";
 
 /// One training image: its pose and the keypoints that observe a point.
 #[derive(Clone, Debug, PartialEq)]
@@ -28,6 +34,18 @@ pub struct StructureImage {
     pub descriptor: Vec<Descriptor>,
     /// Per observation: the keypoint's pixel at the detection size.
     pub pixel: Vec<[f32; 2]>,
+    /// The image's camera and gray values at the detection size, for patch alignment
+    /// (`None` in maps that did not keep them).
+    pub appearance: Option<ImageAppearance>,
+}
+
+/// A training image as patch alignment reads it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageAppearance {
+    /// The camera at the detection size (the observations' pixels are in its image).
+    pub camera: Camera,
+    /// Gray values, 8-bit, row-major, `camera.width × camera.height`.
+    pub gray: Vec<u8>,
 }
 
 impl StructureImage {
@@ -47,6 +65,10 @@ impl StructureImage {
 pub struct StructureMap {
     points: Vec<Point3<f64>>,
     images: Vec<StructureImage>,
+    /// Per point, its observations as (image, observation), in CSR form: `track_start[p]
+    /// ..track_start[p + 1]` indexes `track`.
+    track_start: Vec<u32>,
+    track: Vec<(u32, u32)>,
 }
 
 impl StructureMap {
@@ -80,12 +102,15 @@ impl StructureMap {
                         [px.x as f32, px.y as f32]
                     })
                     .collect(),
+                appearance: (im.gray.len() == (im.camera.width * im.camera.height) as usize).then(
+                    || ImageAppearance {
+                        camera: im.camera,
+                        gray: im.gray.clone(),
+                    },
+                ),
             });
         }
-        StructureMap {
-            points: tracks.xyz.clone(),
-            images,
-        }
+        StructureMap::indexed(tracks.xyz.clone(), images)
     }
 
     /// A structure from its parts; every observation must name an existing point and every
@@ -114,7 +139,42 @@ impl StructureMap {
                 )));
             }
         }
-        Ok(StructureMap { points, images })
+        Ok(StructureMap::indexed(points, images))
+    }
+
+    /// The map with its point → observations index (observations must name existing points).
+    fn indexed(points: Vec<Point3<f64>>, images: Vec<StructureImage>) -> StructureMap {
+        let mut count = vec![0u32; points.len() + 1];
+        for im in &images {
+            for &p in &im.point {
+                count[p as usize + 1] += 1;
+            }
+        }
+        for k in 1..count.len() {
+            count[k] += count[k - 1];
+        }
+        let mut fill = count.clone();
+        let mut track = vec![(0u32, 0u32); *count.last().unwrap_or(&0) as usize];
+        for (i, im) in images.iter().enumerate() {
+            for (o, &p) in im.point.iter().enumerate() {
+                track[fill[p as usize] as usize] = (i as u32, o as u32);
+                fill[p as usize] += 1;
+            }
+        }
+        StructureMap {
+            points,
+            images,
+            track_start: count,
+            track,
+        }
+    }
+
+    /// The observations of point `p` as (image, observation in it).
+    pub fn track(&self, p: usize) -> &[(u32, u32)] {
+        match (self.track_start.get(p), self.track_start.get(p + 1)) {
+            (Some(&a), Some(&b)) => &self.track[a as usize..b as usize],
+            _ => &[],
+        }
     }
 
     /// Points, world frame.
@@ -135,7 +195,9 @@ impl StructureMap {
     /// The safetensors bytes: `points` f64 [P, 3], `image_frame` u32 [I], `image_pose` f64
     /// [I, 7] (cam_from_world as qw qx qy qz tx ty tz), `image_start` u32 [I + 1] (offsets
     /// into the observations), `obs_point` u32 [O], `obs_descriptor` u8 [O, 32],
-    /// `obs_pixel` f32 [O, 2].
+    /// `obs_pixel` f32 [O, 2]; when every image has its appearance, `image_camera` f64
+    /// [I, 11] (width, height, fx, fy, cx, cy, k1, k2, p1, p2, k3), `image_gray_start` u64
+    /// [I + 1] and `image_gray` u8 [G] (row-major gray values, image after image).
     pub fn to_bytes(&self) -> Result<Vec<u8>, StructureError> {
         let fmt = |reason: String| StructureError::Format {
             path: Default::default(),
@@ -181,6 +243,41 @@ impl StructureMap {
             ("obs_descriptor", Dtype::U8, vec![o, 32], &obs_desc),
             ("obs_pixel", Dtype::F32, vec![o, 2], &obs_px),
         ];
+        let (mut cams, mut gray_start, mut gray) = (Vec::new(), Vec::new(), Vec::new());
+        let appearance: Option<Vec<&ImageAppearance>> = self
+            .images
+            .iter()
+            .map(|im| im.appearance.as_ref())
+            .collect();
+        let mut cols = cols.to_vec();
+        if let Some(apps) = appearance.filter(|a| !a.is_empty()) {
+            for app in apps {
+                let c = &app.camera;
+                let d = &c.distortion;
+                let row = [
+                    f64::from(c.width),
+                    f64::from(c.height),
+                    c.fx,
+                    c.fy,
+                    c.cx,
+                    c.cy,
+                    d.k1,
+                    d.k2,
+                    d.p1,
+                    d.p2,
+                    d.k3,
+                ];
+                for v in row {
+                    cams.extend_from_slice(&v.to_le_bytes());
+                }
+                gray_start.extend_from_slice(&(gray.len() as u64).to_le_bytes());
+                gray.extend_from_slice(&app.gray);
+            }
+            gray_start.extend_from_slice(&(gray.len() as u64).to_le_bytes());
+            cols.push(("image_camera", Dtype::F64, vec![i, 11], &cams));
+            cols.push(("image_gray_start", Dtype::U64, vec![i + 1], &gray_start));
+            cols.push(("image_gray", Dtype::U8, vec![gray.len()], &gray));
+        }
         let mut views = Vec::with_capacity(cols.len());
         for (name, dtype, shape, bytes) in cols {
             views.push((
@@ -201,9 +298,11 @@ impl StructureMap {
         };
         let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| bad(e.to_string()))?;
         let tag = meta.metadata().as_ref().and_then(|m| m.get("format"));
-        if tag.map(String::as_str) != Some(STRUCTURE_FORMAT) {
+        let v1 = tag.map(String::as_str) == Some(STRUCTURE_FORMAT_V1);
+        if tag.map(String::as_str) != Some(STRUCTURE_FORMAT) && !v1 {
             return Err(bad(format!(
-                "metadata `format` is {tag:?}, expected {STRUCTURE_FORMAT:?}"
+                "metadata `format` is {tag:?}, expected {STRUCTURE_FORMAT:?} or \
+                 {STRUCTURE_FORMAT_V1:?}"
             )));
         }
         let st = SafeTensors::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
@@ -302,6 +401,12 @@ impl StructureMap {
                 k / 2
             )));
         }
+        let appearance = if v1 || st.tensor("image_camera").is_err() {
+            None
+        } else {
+            Some(read_appearance(&column, i, &bad)?)
+        };
+        let mut appearance = appearance.map(Vec::into_iter);
         let mut images = Vec::with_capacity(i);
         for k in 0..i {
             let v = &poses[7 * k..7 * k + 7];
@@ -332,16 +437,94 @@ impl StructureMap {
                     .chunks_exact(2)
                     .map(|c| [c[0], c[1]])
                     .collect(),
+                appearance: appearance.as_mut().and_then(Iterator::next),
             });
         }
-        Ok(StructureMap { points, images })
+        Ok(StructureMap::indexed(points, images))
     }
+}
+
+/// Reads one tensor by name, dtype and row width: (rows, raw bytes).
+type Column<'a> =
+    dyn Fn(&str, Dtype, Option<usize>) -> Result<(usize, Vec<u8>), StructureError> + 'a;
+
+/// The optional appearance tensors of a `/2` file: one camera and gray image per image.
+fn read_appearance(
+    column: &Column<'_>,
+    images: usize,
+    bad: &dyn Fn(String) -> StructureError,
+) -> Result<Vec<ImageAppearance>, StructureError> {
+    let (nc, raw) = column("image_camera", Dtype::F64, Some(11))?;
+    let (ns, raw_start) = column("image_gray_start", Dtype::U64, None)?;
+    let (ng, gray) = column("image_gray", Dtype::U8, None)?;
+    if nc != images || ns != images + 1 {
+        return Err(bad(format!(
+            "tensors `image_camera` ({nc} rows) and `image_gray_start` ({ns} entries) do not \
+             fit {images} images"
+        )));
+    }
+    let cams: Vec<f64> = raw
+        .chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+        .collect();
+    let start: Vec<u64> = raw_start
+        .chunks_exact(8)
+        .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+        .collect();
+    let mut out = Vec::with_capacity(images);
+    for k in 0..images {
+        let v = &cams[11 * k..11 * k + 11];
+        let size_ok = |x: f64| x.fract() == 0.0 && (1.0..=65_536.0).contains(&x);
+        if !size_ok(v[0]) || !size_ok(v[1]) {
+            return Err(bad(format!(
+                "tensor `image_camera`: image {k} has size {} × {}",
+                v[0], v[1]
+            )));
+        }
+        let camera = Camera {
+            width: v[0] as u32,
+            height: v[1] as u32,
+            fx: v[2],
+            fy: v[3],
+            cx: v[4],
+            cy: v[5],
+            distortion: matloc_core::Distortion {
+                k1: v[6],
+                k2: v[7],
+                p1: v[8],
+                p2: v[9],
+                k3: v[10],
+            },
+        };
+        camera
+            .validate()
+            .map_err(|e| bad(format!("tensor `image_camera`: image {k}: {e}")))?;
+        let (a, b) = (start[k], start[k + 1]);
+        let want = u64::from(camera.width) * u64::from(camera.height);
+        if a > b || b > ng as u64 || b - a != want {
+            return Err(bad(format!(
+                "tensor `image_gray_start`: image {k} spans {a}..{b} of {ng} values, expected \
+                 {want} ({} × {})",
+                camera.width, camera.height
+            )));
+        }
+        out.push(ImageAppearance {
+            camera,
+            gray: gray[a as usize..b as usize].to_vec(),
+        });
+    }
+    if start.last() != Some(&(ng as u64)) {
+        return Err(bad(format!(
+            "tensor `image_gray` holds {ng} values, the images {}",
+            start.last().copied().unwrap_or(0)
+        )));
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use matloc_core::Camera;
     use matloc_surface::triangulate::ImageKeypoints;
     use nalgebra::Point2;
 
@@ -355,6 +538,9 @@ pub(crate) mod tests {
                 .collect(),
             descriptors: (0..n)
                 .map(|k| [k as u64, seed, u64::MAX - k as u64, 7])
+                .collect(),
+            gray: (0..100 * 80)
+                .map(|v| (v * 7 + seed as usize) as u8)
                 .collect(),
         };
         let tracks = TrackedPoints {
@@ -390,7 +576,57 @@ pub(crate) mod tests {
                 (&b.point, &b.descriptor, &b.pixel)
             );
             assert!((a.cam_from_world.to_matrix() - b.cam_from_world.to_matrix()).norm() < 1e-12);
+            assert!(a.appearance.is_some());
+            assert_eq!(a.appearance, b.appearance);
         }
+        // Point 0 is seen by images 0 and 1.
+        assert_eq!(back.track(0), &[(0, 0), (1, 0)]);
+        assert_eq!(back.track(7), &[]);
+    }
+
+    /// The file as the earlier format wrote it: no appearance tensors, tag `/1`.
+    fn v1_bytes(m: &StructureMap) -> Vec<u8> {
+        let mut m = m.clone();
+        for im in &mut m.images {
+            im.appearance = None;
+        }
+        let bytes = m.to_bytes().unwrap();
+        let st = SafeTensors::deserialize(&bytes).unwrap();
+        let views: Vec<(String, TensorView<'_>)> = st
+            .tensors()
+            .into_iter()
+            .filter(|(n, _)| !n.starts_with("image_gray") && n != "image_camera")
+            .collect();
+        let meta = HashMap::from([("format".to_string(), STRUCTURE_FORMAT_V1.to_string())]);
+        safetensors::serialize(views, Some(meta)).unwrap()
+    }
+
+    #[test]
+    fn earlier_files_load_without_appearance() {
+        let m = sample();
+        let back = StructureMap::from_bytes(&v1_bytes(&m), Path::new("s.safetensors")).unwrap();
+        assert_eq!(back.images().len(), 3);
+        assert!(back.images().iter().all(|im| im.appearance.is_none()));
+        assert_eq!(back.images()[1].descriptor, m.images()[1].descriptor);
+    }
+
+    #[test]
+    fn a_corrupt_appearance_is_refused_naming_the_tensor() {
+        let path = Path::new("map/structure.safetensors");
+        // A gray image one value short of its camera.
+        let mut m = sample();
+        m.images[1].appearance.as_mut().unwrap().gray.pop();
+        let err = StructureMap::from_bytes(&m.to_bytes().unwrap(), path).unwrap_err();
+        assert!(err.to_string().contains("image_gray_start"), "{err}");
+        // An impossible camera.
+        let mut m = sample();
+        m.images[2].appearance.as_mut().unwrap().camera.fx = -1.0;
+        let err = StructureMap::from_bytes(&m.to_bytes().unwrap(), path).unwrap_err();
+        assert!(err.to_string().contains("image_camera"), "{err}");
+        assert!(
+            err.to_string().starts_with("map/structure.safetensors"),
+            "{err}"
+        );
     }
 
     #[test]

@@ -31,6 +31,8 @@ struct Features {
     /// Unit ray directions, world frame.
     rays: Vec<Vector3<f64>>,
     descriptors: Vec<Descriptor>,
+    /// Gray values at the detection size, 8-bit, row-major.
+    gray: Vec<u8>,
 }
 
 /// Progress of triangulation: `(phase, done, total)` with phase `"detect"` or `"match"`.
@@ -47,6 +49,9 @@ pub struct ImageKeypoints {
     pub pixels: Vec<Point2<f64>>,
     /// Their descriptors.
     pub descriptors: Vec<Descriptor>,
+    /// The image's gray values at the detection size (`camera`'s), 8-bit, row-major: what a
+    /// localizer aligns patches to.
+    pub gray: Vec<u8>,
 }
 
 /// Triangulated points with the keypoints that observe them.
@@ -125,6 +130,7 @@ pub fn triangulate_tracks(
             camera: f.camera,
             pixels: f.pixels,
             descriptors: f.descriptors,
+            gray: f.gray,
         })
         .collect();
     Ok(tracks)
@@ -147,7 +153,8 @@ fn features_of(
         upsample: config.upsample,
         ..KeypointConfig::default()
     };
-    let (keypoints, descriptors) = detect_and_describe(&GrayImage::from_image(&image), &kp_config);
+    let gray = GrayImage::from_image(&image);
+    let (keypoints, descriptors) = detect_and_describe(&gray, &kp_config);
     let world_from_cam = frame.cam_from_world.inverse();
     let mut out = Features {
         frame: index,
@@ -157,6 +164,11 @@ fn features_of(
         pixels: Vec::with_capacity(keypoints.len()),
         rays: Vec::with_capacity(keypoints.len()),
         descriptors: Vec::with_capacity(keypoints.len()),
+        gray: gray
+            .data()
+            .iter()
+            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect(),
     };
     for (k, d) in keypoints.iter().zip(descriptors) {
         let px = Point2::new(f64::from(k.x), f64::from(k.y));

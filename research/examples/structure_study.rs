@@ -78,6 +78,7 @@ fn main() {
     );
     let (mut dt, mut dr, mut seconds) = (Vec::new(), Vec::new(), 0.0);
     let (mut within_25cm, mut within_1m, mut refused) = (0, 0, 0);
+    let (mut align_s, mut aligned_inliers) = (0.0, 0usize);
     for (i, f) in queries.split(Split::Test).enumerate() {
         let (image, camera) = matloc_data::images::load_frame_image(queries, f, 1).unwrap();
         let start = start_of(&f.cam_from_world, i, offset);
@@ -86,6 +87,12 @@ fn main() {
         let r = matloc_structure::localize(&map, &image, &camera, &[start], &options, &mut rng)
             .unwrap();
         seconds += t.elapsed().as_secs_f64();
+        align_s += r
+            .stage_seconds
+            .iter()
+            .find(|(n, _)| n == "align")
+            .map_or(0.0, |(_, s)| *s);
+        aligned_inliers += r.aligned_inliers;
         match r.cam_from_world {
             Some(p) => {
                 let (t, a) = (
@@ -112,11 +119,16 @@ fn main() {
         }
     }
     let n = dt.len();
+    let near: Vec<f64> = dt.iter().copied().filter(|t| *t <= 0.25).collect();
     println!(
-        "{n} queries: median {:.3} m / {:.3}°, within (0.25 m, 2°) {within_25cm}, (1 m, 5°) \
-         {within_1m}, refused {refused}; {:.3} s per query",
+        "{n} queries: median {:.3} m / {:.3}° (mean within 0.25 m: {:.4} m), within (0.25 m, \
+         2°) {within_25cm}, (1 m, 5°) {within_1m}, refused {refused}; {:.3} s per query \
+         (alignment {:.3} s, {:.0} aligned inliers)",
         median(&mut dt),
         median(&mut dr),
-        seconds / n.max(1) as f64
+        near.iter().sum::<f64>() / near.len().max(1) as f64,
+        seconds / n.max(1) as f64,
+        align_s / n.max(1) as f64,
+        aligned_inliers as f64 / n.max(1) as f64
     );
 }

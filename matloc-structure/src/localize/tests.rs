@@ -3,7 +3,7 @@
 //! from a pose between them must come back to a few centimetres.
 
 use super::*;
-use crate::store::StructureImage;
+use crate::store::{ImageAppearance, StructureImage};
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
@@ -77,13 +77,22 @@ fn plane_structure() -> StructureMap {
         for gx in -1..=1 {
             let pose = pose_above(12.0 * gx as f64, 12.0 * gy as f64, 0.05 * frame as f64);
             let image = render(&camera, &pose, ground);
-            let (kps, descs) = detect_and_describe(&GrayImage::from_image(&image), &config);
+            let gray = GrayImage::from_image(&image);
+            let (kps, descs) = detect_and_describe(&gray, &config);
             let mut im = StructureImage {
                 frame,
                 cam_from_world: pose,
                 point: Vec::new(),
                 descriptor: Vec::new(),
                 pixel: Vec::new(),
+                appearance: Some(ImageAppearance {
+                    camera,
+                    gray: gray
+                        .data()
+                        .iter()
+                        .map(|v| (v * 255.0).round() as u8)
+                        .collect(),
+                }),
             };
             for (k, d) in kps.iter().zip(descs) {
                 let px = Point2::new(f64::from(k.x), f64::from(k.y));
@@ -144,6 +153,47 @@ fn a_query_between_training_views_localizes_to_centimetres() {
     );
     assert!(r.inliers >= 100, "{}", r.inliers);
     assert!(r.starts.iter().all(|s| s.start == 0));
+}
+
+/// Aligning the query's patches to the training images' patches moves its keypoints onto
+/// the training keypoints' surface points, and tracking adds every textured point in view:
+/// the poses come much closer than from the detected positions alone (mean 0.0138 m →
+/// 0.0047 m here).
+#[test]
+fn patch_alignment_brings_the_poses_closer() {
+    let map = plane_structure();
+    let camera = camera();
+    let truths = [
+        pose_above(4.3, -5.1, 0.12),
+        pose_above(-6.2, 3.3, -0.2),
+        pose_above(1.1, 7.4, 0.3),
+        pose_above(-2.5, -8.0, 0.05),
+    ];
+    let run = |align: bool| -> (f64, f64) {
+        let options = StructureOptions {
+            align: AlignOptions {
+                enabled: align,
+                ..AlignOptions::default()
+            },
+            ..StructureOptions::default()
+        };
+        let (mut t, mut r) = (0.0, 0.0);
+        for (i, gt) in truths.iter().enumerate() {
+            let query = render(&camera, gt, ground);
+            let mut rng = ChaCha8Rng::seed_from_u64(i as u64);
+            let got = localize(&map, &query, &camera, &[*gt], &options, &mut rng).unwrap();
+            let pose = got.cam_from_world.expect("localized");
+            t += translation_error_m(&pose, gt);
+            r += rotation_error_deg(&pose, gt);
+        }
+        (t / truths.len() as f64, r / truths.len() as f64)
+    };
+    let (plain, aligned) = (run(false), run(true));
+    eprintln!("mean error: detected {plain:?}, aligned {aligned:?}");
+    assert!(
+        aligned.0 < 0.6 * plain.0 && aligned.1 < 0.6 * plain.1,
+        "{plain:?} → {aligned:?}"
+    );
 }
 
 #[test]
