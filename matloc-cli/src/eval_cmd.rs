@@ -9,6 +9,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use matloc_core::Pose;
 use matloc_pipeline::LoadedMap;
+use matloc_pipeline::config::CalibrationQueries;
 use matloc_pipeline::eval::tables::RELIABILITY_BINS;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 use matloc_pipeline::{
@@ -194,9 +195,15 @@ fn differences(runs: &[MethodRun], map: &LoadedMap, method_options: &MethodOptio
                 structure.max_log10_nfa
             ),
             Method::Matloc => format!(
-                "the place predictor's top {} hypotheses, tried in order; refuses below a calibrated confidence of {:.2} (fitted at build time on held-out training views: kept out of their block's encoder, not out of the place predictor) or a correction beyond {:.1}°",
+                "the place predictor's top {} hypotheses, tried in order; refuses below a calibrated confidence of {:.2} (fitted at build time on {}) or a correction beyond {:.1}°",
                 options.top_k.max(1),
                 options.confidence.accept_threshold,
+                match map.calibrated_on {
+                    CalibrationQueries::HeldOut =>
+                        "held-out training views: kept out of their block's encoder, not out of the place predictor",
+                    CalibrationQueries::Rendered =>
+                        "views rendered halfway between neighbouring training views, which neither the encoder nor the place predictor trained on",
+                },
                 options.max_accept_rotation_deg
             ),
             Method::RgbKeypoints => format!(

@@ -12,6 +12,7 @@ use matloc_pipeline::MapDir;
 use matloc_pipeline::build::{
     BuildEvent, MapConfig, build_map, plan_map, run_block_job, run_finish_job,
 };
+use matloc_pipeline::config::CalibrationQueries;
 use matloc_pipeline::map::MapError;
 use matloc_pipeline::map::layout::{
     CONFIDENCE_FILE, CalibrationRecord, PLAN_FILE, PLAN_FORMAT, PlanRecord, SelectionRecord,
@@ -713,6 +714,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
             "correct": c.samples.iter().filter(|s| s.1).count(),
             "accuracy": c.accuracy,
             "max_accept_rotation_deg": c.max_accept_rotation_deg,
+            "queries": c.queries,
         })
     });
     if json {
@@ -801,9 +803,13 @@ fn info(root: &Path, json: bool) -> Result<()> {
     }
     if let Some(c) = &calibration {
         outln!(
-            "  calibration  {} attempts ({} correct), rule accuracy {:.0} %, accept threshold {}, \
-             accepted poses within {} of their coarse attitude",
+            "  calibration  {} attempts on {} ({} correct), rule accuracy {:.0} %, accept \
+             threshold {}, accepted poses within {} of their coarse attitude",
             c.samples.len(),
+            match c.queries {
+                CalibrationQueries::HeldOut => "held-out views",
+                CalibrationQueries::Rendered => "rendered views",
+            },
             c.samples.iter().filter(|s| s.1).count(),
             100.0 * c.accuracy,
             c.model.accept_threshold,

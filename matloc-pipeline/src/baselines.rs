@@ -23,7 +23,7 @@ use matloc_keypoints::{
     GrayImage, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
 };
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
-use matloc_render::{NerfModel, PixelSet, RenderRequest, render_view};
+use matloc_render::{NerfModel, PixelSet, RenderRequest, RenderedView, render_view};
 use nalgebra::{Isometry3, Point2, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
 use rand::{Rng, RngCore};
 use serde::{Deserialize, Serialize};
@@ -68,6 +68,29 @@ pub struct KeypointBaselineOptions {
     pub pnp: PnpOptions,
 }
 
+/// `model`'s view at `cam_from_world`, every pixel of `camera`, with its colour image.
+pub(crate) fn render_colour(
+    model: &NerfModel,
+    camera: &Camera,
+    cam_from_world: &Pose,
+) -> Result<(RenderedView, Image<f32>), PipelineError> {
+    let view = render_view(
+        model,
+        camera,
+        cam_from_world,
+        &PixelSet::Full,
+        &RenderRequest {
+            rgb: true,
+            dims: Vec::new(),
+            appearance: None,
+        },
+    )?;
+    let rgb = view
+        .rgb_image()
+        .ok_or(PipelineError::Internal("rendered view without RGB"))?;
+    Ok((view, rgb))
+}
+
 /// Rendered RGB + keypoints + PnP from a coarse pose.
 pub fn rgb_keypoints(
     model: &NerfModel,
@@ -80,18 +103,7 @@ pub fn rgb_keypoints(
     check_query(camera, query)?;
     let mut stages = Vec::new();
     let t = Instant::now();
-    let view = render_view(
-        model,
-        camera,
-        coarse_cam_from_world,
-        &PixelSet::Full,
-        &RenderRequest {
-            rgb: true,
-            dims: Vec::new(),
-            appearance: None,
-        },
-    )?;
-    let rendered = view.rgb_image().ok_or(PipelineError::Internal("no RGB"))?;
+    let (view, rendered) = render_colour(model, camera, coarse_cam_from_world)?;
     stages.push(("render".to_string(), t.elapsed().as_secs_f64()));
 
     let t = Instant::now();

@@ -336,6 +336,23 @@ pub struct CalibrationConfig {
     pub rotation_bound_margin: f64,
     /// Lower limit of the calibrated rotation bound, degrees.
     pub min_rotation_bound_deg: f64,
+    /// What the confidence is fitted on ([`CalibrationQueries`]).
+    pub queries: CalibrationQueries,
+}
+
+/// The images the calibration stage localizes. The default is the one whose confidence
+/// predicted the test queries' outcomes better on `small` (docs/DECISIONS.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationQueries {
+    /// The held-out views' own photos. The place predictor trained on them, so its nearest
+    /// member — the coarse pose — is the view itself: easier starts than a query gets.
+    #[default]
+    HeldOut,
+    /// For each held-out view, a view rendered by its block's NeRF halfway (position and
+    /// attitude) to the view's nearest neighbour in the block: an image and pose the place
+    /// predictor never saw, so its hypotheses and coarse pose come as a query's do.
+    Rendered,
 }
 
 impl Default for CalibrationConfig {
@@ -349,6 +366,7 @@ impl Default for CalibrationConfig {
             accept_threshold: 0.5,
             rotation_bound_margin: 2.5,
             min_rotation_bound_deg: 6.0,
+            queries: CalibrationQueries::default(),
         }
     }
 }

@@ -1,14 +1,19 @@
 //! The calibration stage: held-out training views (every `holdout_every`-th view of a block,
-//! kept out of its pairs and encoder, not of its NeRF) are localized with the finished map; the
-//! attempts fit the confidence model and the bound on an accepted pose's rotation.
+//! kept out of its pairs and encoder, not of its NeRF) — or views rendered halfway from each
+//! to its nearest neighbour ([`CalibrationQueries`]) — are localized with the
+//! finished map; the attempts fit the confidence model and the bound on an accepted pose's
+//! rotation.
 
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
+use matloc_core::pose::{Pose, camera_center};
+use matloc_core::{Camera, Image};
 use matloc_data::Dataset;
 use matloc_partition::Partition;
 
 use crate::build::common::{BuildEvent, load_image, spaced, stage, views_of_block};
-use crate::config::{CalibrationConfig, MapConfig};
+use crate::config::{CalibrationConfig, CalibrationQueries, MapConfig};
 use crate::error::PipelineError;
+use crate::gt::TrainingView;
 use crate::localizer::FixedPlace;
 use crate::localizer::confidence::{ConfidenceModel, Evidence};
 use crate::localizer::options::LocalizeOptions;
@@ -28,7 +33,11 @@ pub fn run(
     let holdout = config.calibration.holdout_every;
     let mut held = Vec::new();
     for b in 0..nb {
-        held.extend(views_of_block(dataset, partition, b, holdout).1);
+        let (fit, block_held) = views_of_block(dataset, partition, b, holdout);
+        for v in &block_held {
+            let neighbour = nearest_other(v, fit.iter().chain(&block_held));
+            held.push((b, v.clone(), neighbour));
+        }
     }
     let held = spaced(&held, config.calibration.max_views);
     stage(
@@ -43,8 +52,19 @@ pub fn run(
             let solver = components.solver(&config.localize);
             let mut samples = Vec::new();
             let mut corrections = Vec::new();
-            for (done, v) in held.iter().enumerate() {
-                let (image, camera) = load_image(dataset, v.index)?;
+            for (done, (b, v, neighbour)) in held.iter().enumerate() {
+                let (image, camera, truth) = match config.calibration.queries {
+                    CalibrationQueries::HeldOut => {
+                        let (image, camera) = load_image(dataset, v.index)?;
+                        (image, camera, v.cam_from_world)
+                    }
+                    CalibrationQueries::Rendered => {
+                        let truth = neighbour
+                            .as_ref()
+                            .map_or(v.cam_from_world, |w| halfway(&v.cam_from_world, w));
+                        (render_rgb(&loaded, *b, &v.camera, &truth)?, v.camera, truth)
+                    }
+                };
                 let hyps = place.predict(
                     &image,
                     &camera,
@@ -78,8 +98,8 @@ pub fn run(
                     };
                     let (te, re) = match &out.cam_from_world {
                         Some(p) => (
-                            translation_error_m(p, &v.cam_from_world),
-                            rotation_error_deg(p, &v.cam_from_world),
+                            translation_error_m(p, &truth),
+                            rotation_error_deg(p, &truth),
                         ),
                         None => (f64::INFINITY, f64::INFINITY),
                     };
@@ -130,11 +150,52 @@ pub fn run(
                     accuracy,
                     corrections_deg: corrections.iter().map(|c| c.min(1e9)).collect(),
                     max_accept_rotation_deg,
+                    queries: config.calibration.queries,
                 },
             )?;
             Ok(())
         },
     )
+}
+
+/// The pose of `other` nearest `v` by camera centre (not `v` itself), if any.
+fn nearest_other<'a>(
+    v: &TrainingView,
+    others: impl Iterator<Item = &'a TrainingView>,
+) -> Option<Pose> {
+    let c = camera_center(&v.cam_from_world);
+    others
+        .filter(|w| w.index != v.index)
+        .map(|w| {
+            (
+                (camera_center(&w.cam_from_world) - c).norm(),
+                w.cam_from_world,
+            )
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, p)| p)
+}
+
+/// The camera halfway between two poses: centres averaged, attitudes slerped.
+fn halfway(a: &Pose, b: &Pose) -> Pose {
+    a.inverse().lerp_slerp(&b.inverse(), 0.5).inverse()
+}
+
+/// Block `b`'s NeRF rendered in colour at `pose`.
+fn render_rgb(
+    loaded: &LoadedBlocks,
+    b: usize,
+    camera: &Camera,
+    pose: &Pose,
+) -> Result<Image<f32>, PipelineError> {
+    let nerf = loaded
+        .0
+        .get(b)
+        .and_then(|block| block.nerf.as_ref())
+        .ok_or(PipelineError::Internal(
+            "calibration renders need the block's NeRF",
+        ))?;
+    Ok(crate::baselines::render_colour(nerf.model(), camera, pose)?.1)
 }
 
 /// The calibrated rotation-correction bound: `margin ×` the 90th percentile of the corrections
@@ -166,6 +227,49 @@ pub fn rotation_bound(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use matloc_core::pose::look_at;
+    use nalgebra::{Point3, Vector3};
+    use proptest::prelude::*;
+
+    fn view(index: usize, eye: [f64; 3], target: [f64; 3]) -> TrainingView {
+        TrainingView {
+            index,
+            camera: Camera::pinhole(64, 48, 50.0, 50.0, 32.0, 24.0).unwrap(),
+            cam_from_world: look_at(&Point3::from(eye), &Point3::from(target), &Vector3::y())
+                .unwrap(),
+        }
+    }
+
+    proptest! {
+        /// The halfway camera sits at the centres' midpoint, its attitude half the turn from
+        /// either end.
+        #[test]
+        fn halfway_averages_centres_and_splits_the_turn(
+            a in prop::array::uniform3(-50.0f64..50.0),
+            b in prop::array::uniform3(-50.0f64..50.0),
+            ta in prop::array::uniform3(-5.0f64..5.0),
+            tb in prop::array::uniform3(-5.0f64..5.0),
+        ) {
+            let pa = view(0, [a[0], a[1], a[2] + 100.0], ta).cam_from_world;
+            let pb = view(1, [b[0], b[1], b[2] + 100.0], tb).cam_from_world;
+            let h = halfway(&pa, &pb);
+            let mid = nalgebra::center(&camera_center(&pa), &camera_center(&pb));
+            prop_assert!((camera_center(&h) - mid).norm() < 1e-9);
+            let (ra, rb) = (rotation_error_deg(&h, &pa), rotation_error_deg(&h, &pb));
+            prop_assert!((ra - rb).abs() < 1e-6);
+            prop_assert!((ra + rb - rotation_error_deg(&pa, &pb)).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn the_nearest_other_view_is_never_the_view_itself() {
+        let v = view(3, [0.0, 0.0, 10.0], [0.0, 0.0, 0.0]);
+        let near = view(5, [1.0, 0.0, 10.0], [1.0, 0.0, 0.0]);
+        let far = view(7, [9.0, 0.0, 10.0], [9.0, 0.0, 0.0]);
+        let all = [v.clone(), far.clone(), near.clone()];
+        assert_eq!(nearest_other(&v, all.iter()), Some(near.cam_from_world));
+        assert_eq!(nearest_other(&v, [v.clone()].iter()), None);
+    }
 
     #[test]
     fn rotation_bound_scales_the_p90_correct_correction_within_limits() {

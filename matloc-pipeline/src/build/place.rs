@@ -165,20 +165,7 @@ fn rendered_place_views(
             .ok_or(PipelineError::Internal("NeRF not loaded"))?;
         for _ in 0..rv.per_view {
             let pose = perturb.apply(&f.cam_from_world, &mut rng);
-            let view = matloc_render::render_view(
-                nerf.model(),
-                &small,
-                &pose,
-                &matloc_render::PixelSet::Full,
-                &matloc_render::RenderRequest {
-                    rgb: true,
-                    dims: Vec::new(),
-                    appearance: None,
-                },
-            )?;
-            let image = view
-                .rgb_image()
-                .ok_or(PipelineError::Internal("rendered view without RGB"))?;
+            let (_, image) = crate::baselines::render_colour(nerf.model(), &small, &pose)?;
             out.labels
                 .push(groups.assign(&pose).unwrap_or(groups.labels[k]));
             out.images.push(image);

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::config::CalibrationQueries;
 use crate::localizer::confidence::{ConfidenceModel, Evidence};
 
 /// Name of the partition file inside the map.
@@ -112,6 +113,14 @@ pub struct CalibrationRecord {
     /// [`CalibrationConfig::rotation_bound_margin`]); `None`: the configured one applies.
     #[serde(default)]
     pub max_accept_rotation_deg: Option<f64>,
+    /// What was localized to fit the model (maps calibrated before this was recorded used
+    /// the held-out views).
+    #[serde(default = "held_out")]
+    pub queries: CalibrationQueries,
+}
+
+fn held_out() -> CalibrationQueries {
+    CalibrationQueries::HeldOut
 }
 
 /// Stages a complete map has.

@@ -442,6 +442,8 @@ pub struct LoadedMap {
     /// Calibrated bound on an accepted pose's rotation from its coarse pose (`None`: the
     /// configured one).
     pub max_accept_rotation_deg: Option<f64>,
+    /// What the confidence was fitted on.
+    pub calibrated_on: crate::config::CalibrationQueries,
     /// The keypoint structure of the training images, when the map has one (maps built
     /// before the structure stage, or with it disabled, do not).
     pub structure: Option<matloc_structure::StructureMap>,
@@ -523,6 +525,7 @@ impl LoadedMap {
             solver,
             confidence: record.model,
             max_accept_rotation_deg: record.max_accept_rotation_deg,
+            calibrated_on: record.queries,
             structure,
         })
     }
