@@ -289,7 +289,8 @@ fn localize_structure(
                 Some(last) => {
                     report.matches = last.matches;
                     report.inliers = last.inliers;
-                    report.confidence = nfa_confidence(last.log10_nfa).unwrap_or(0.0);
+                    report.confidence =
+                        structure_confidence(last.log10_nfa, last.inliers, options.min_inliers);
                     report.accepted =
                         r.cam_from_world.is_some() && tried.iter().any(|s| s.accepted);
                     report.failure = (last.images == 0)
@@ -317,8 +318,11 @@ fn localize_structure(
             .as_ref()
             .map(|p| camera_center(p).coords.into()),
         cam_from_world: r.cam_from_world,
-        // 0 when no start found a consensus to score.
-        confidence: Some(nfa_confidence(r.log10_nfa).unwrap_or(0.0)),
+        confidence: Some(structure_confidence(
+            r.log10_nfa,
+            r.inliers,
+            options.min_inliers,
+        )),
         inliers: r.inliers,
         iterations: r.starts.len() as u32,
         hypotheses,
@@ -330,8 +334,13 @@ fn localize_structure(
 /// The structure method's confidence: 1 − NFA, where the number of false alarms bounds the
 /// chance that a consensus this large among these matches is an accident (not calibrated on
 /// held-out views as MatLoc's is; every accepted pose has at least 1 − 10^max_log10_nfa).
-fn nfa_confidence(log10_nfa: Option<f64>) -> Option<f64> {
-    log10_nfa.map(|l| 1.0 - 10f64.powf(l).min(1.0))
+/// 0 for a consensus below the method's inlier floor, which it refuses whatever its NFA (a
+/// refused query showed 1 − NFA ≈ 1 otherwise), and when no start found one to score.
+fn structure_confidence(log10_nfa: Option<f64>, inliers: usize, min_inliers: usize) -> f64 {
+    match log10_nfa {
+        Some(l) if inliers >= min_inliers => 1.0 - 10f64.powf(l).min(1.0),
+        _ => 0.0,
+    }
 }
 
 impl QueryResult {
@@ -346,5 +355,21 @@ impl QueryResult {
             iterations: Some(self.iterations),
             confidence: self.confidence,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::structure_confidence;
+
+    #[test]
+    fn a_consensus_below_the_inlier_floor_has_no_confidence() {
+        assert!((structure_confidence(Some(-6.0), 40, 15) - (1.0 - 1e-6)).abs() < 1e-12);
+        // Refused on the floor, however unlikely by chance: 0.
+        assert_eq!(structure_confidence(Some(-6.0), 14, 15), 0.0);
+        // Refused on its NFA: below the acceptance level 1 − 10^-2.
+        assert!(structure_confidence(Some(-1.0), 40, 15) < 0.99);
+        assert_eq!(structure_confidence(Some(3.0), 40, 15), 0.0);
+        assert_eq!(structure_confidence(None, 0, 15), 0.0);
     }
 }
