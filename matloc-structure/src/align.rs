@@ -29,7 +29,9 @@ pub struct AlignOptions {
     /// Largest move of a query keypoint, query pixels: beyond it the patch is taken to have
     /// locked onto something else and the keypoint keeps its detected position.
     pub max_shift_px: f64,
-    /// Smallest normalised cross-correlation of an aligned patch.
+    /// Smallest normalised cross-correlation of an aligned patch: a patch whose shadows or
+    /// texture differ from the training image's pulls its point off; 0.95 against 0.8 took
+    /// `rubble`'s second flight from 0.032 to 0.022 m (same flight 0.018 → 0.019 m).
     pub min_zncc: f64,
     /// Also align the points that the start's training images see and no descriptor match
     /// reached, each from its projection under the pose: every textured point in view
@@ -45,7 +47,7 @@ impl Default for AlignOptions {
             half_window: 4,
             iterations: 12,
             max_shift_px: 1.5,
-            min_zncc: 0.8,
+            min_zncc: 0.95,
             track: true,
         }
     }
