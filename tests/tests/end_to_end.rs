@@ -13,6 +13,8 @@ use std::sync::OnceLock;
 
 mod bin_path;
 use bin_path::matloc_bin;
+mod fs_tree;
+use fs_tree::copy_tree;
 
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_core::{Image, Pose};
@@ -206,19 +208,6 @@ fn matloc_localizes_test_views_with_the_learned_encoder() {
     assert!(wrong <= 1, "{wrong} wrong poses returned");
 }
 
-/// The map's directory copied to `to` (files only, recursively).
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
-}
-
 /// The calibration stage rerun on a copy of the map with `calibration.queries = rendered`:
 /// views rendered halfway between neighbouring training views, which neither the encoder nor
 /// the place predictor saw. The record says so, some attempts are correct, and MatLoc with
@@ -230,7 +219,7 @@ fn calibration_on_rendered_views_keeps_matloc_s_floors() {
     let b = built();
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("end_to_end_rendered_calibration");
     let _ = std::fs::remove_dir_all(&dir);
-    copy_dir(&b.map_dir, &dir);
+    copy_tree(&b.map_dir, &dir);
     let mut config = tiny_config();
     config.calibration.queries = CalibrationQueries::Rendered;
     let mut map = matloc_pipeline::MapDir::open(&dir).unwrap();

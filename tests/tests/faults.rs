@@ -10,6 +10,8 @@
 mod bin_path;
 
 use bin_path::matloc_bin;
+mod fs_tree;
+use fs_tree::copy_tree;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
@@ -237,19 +239,6 @@ fn matloc_small_files(args: &[&Path], limit_files: Option<u64>) -> Output {
         .stdin(Stdio::null())
         .output()
         .expect("run matloc")
-}
-
-fn copy_tree(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let target = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_tree(&e.path(), &target);
-        } else {
-            std::fs::copy(e.path(), target).unwrap();
-        }
-    }
 }
 
 fn tree_bytes(dir: &Path) -> u64 {

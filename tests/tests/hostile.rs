@@ -11,6 +11,7 @@
 mod bin_path;
 
 use bin_path::matloc_bin;
+mod fs_tree;
 mod hostile_corpus;
 
 use std::collections::BTreeMap;

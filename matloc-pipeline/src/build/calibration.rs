@@ -31,12 +31,17 @@ pub fn run(
 ) -> Result<(), PipelineError> {
     let nb = partition.blocks.len();
     let holdout = config.calibration.holdout_every;
+    // Each calibration query: its block, its view, and the pose it is localized at.
     let mut held = Vec::new();
     for b in 0..nb {
         let (fit, block_held) = views_of_block(dataset, partition, b, holdout);
         for v in &block_held {
-            let neighbour = nearest_other(v, fit.iter().chain(&block_held));
-            held.push((b, v.clone(), neighbour));
+            let truth = match config.calibration.queries {
+                CalibrationQueries::HeldOut => v.cam_from_world,
+                CalibrationQueries::Rendered => nearest_other(v, fit.iter().chain(&block_held))
+                    .map_or(v.cam_from_world, |w| halfway(&v.cam_from_world, &w)),
+            };
+            held.push((b, v.clone(), truth));
         }
     }
     let held = spaced(&held, config.calibration.max_views);
@@ -52,17 +57,11 @@ pub fn run(
             let solver = components.solver(&config.localize);
             let mut samples = Vec::new();
             let mut corrections = Vec::new();
-            for (done, (b, v, neighbour)) in held.iter().enumerate() {
-                let (image, camera, truth) = match config.calibration.queries {
-                    CalibrationQueries::HeldOut => {
-                        let (image, camera) = load_image(dataset, v.index)?;
-                        (image, camera, v.cam_from_world)
-                    }
+            for (done, (b, v, truth)) in held.iter().enumerate() {
+                let (image, camera) = match config.calibration.queries {
+                    CalibrationQueries::HeldOut => load_image(dataset, v.index)?,
                     CalibrationQueries::Rendered => {
-                        let truth = neighbour
-                            .as_ref()
-                            .map_or(v.cam_from_world, |w| halfway(&v.cam_from_world, w));
-                        (render_rgb(&loaded, *b, &v.camera, &truth)?, v.camera, truth)
+                        (render_rgb(&loaded, *b, &v.camera, truth)?, v.camera)
                     }
                 };
                 let hyps = place.predict(
@@ -97,10 +96,7 @@ pub fn run(
                         alignment: rep.alignment,
                     };
                     let (te, re) = match &out.cam_from_world {
-                        Some(p) => (
-                            translation_error_m(p, &truth),
-                            rotation_error_deg(p, &truth),
-                        ),
+                        Some(p) => (translation_error_m(p, truth), rotation_error_deg(p, truth)),
                         None => (f64::INFINITY, f64::INFINITY),
                     };
                     let ok = te <= config.calibration.correct_translation_m

@@ -6,6 +6,8 @@ use std::ffi::OsString;
 use std::fs;
 use std::path::{Path, PathBuf};
 
+use crate::fs_tree::copy_tree;
+
 use matloc_core::pose::colmap_from_cam_from_world;
 use matloc_data::colmap::{ColmapFormat, read_colmap, write_colmap};
 use matloc_data::meganerf::write_mega_nerf;
@@ -1704,19 +1706,6 @@ fn meganerf_cases(g: &mut Gen, base: &Base) {
         true,
         &[],
     );
-}
-
-fn copy_tree(from: &Path, to: &Path) {
-    fs::create_dir_all(to).unwrap();
-    for e in fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let target = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_tree(&e.path(), &target);
-        } else {
-            fs::copy(e.path(), target).unwrap();
-        }
-    }
 }
 
 // ---------------------------------------------------------------------------------------------
