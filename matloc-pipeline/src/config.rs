@@ -43,6 +43,38 @@ pub struct MapConfig {
     pub localize: LocalizeOptions,
 }
 
+impl MapConfig {
+    /// The full configuration a partial one (a user's file: only the keys they change) stands
+    /// for, as JSON: each key it gives replaces the default's, objects key by key, so a
+    /// section keeps the map's defaults for what it leaves out — `{"encoder": {"train":
+    /// {"steps": 900}}}` keeps the encoder's head phase, which serde alone would reset to the
+    /// training type's own default. An object that names a key the default lacks (another
+    /// enum variant, or a typo, which deserialising then reports) or another `kind` replaces
+    /// the default's object whole. Deserialise the result (`serde_json::from_value`).
+    pub fn overlay_on_default(partial: serde_json::Value) -> serde_json::Value {
+        let mut full = serde_json::to_value(MapConfig::default())
+            .expect("the default config serialises to JSON");
+        overlay(&mut full, partial);
+        full
+    }
+}
+
+/// Writes `over` onto `base` (see [`MapConfig::overlay_on_default`]).
+fn overlay(base: &mut serde_json::Value, over: serde_json::Value) {
+    use serde_json::Value;
+    match (base, over) {
+        (Value::Object(b), Value::Object(o))
+            if o.keys().all(|k| b.contains_key(k))
+                && o.get("kind").is_none_or(|k| b.get("kind") == Some(k)) =>
+        {
+            for (k, v) in o {
+                overlay(b.get_mut(&k).expect("key checked above"), v);
+            }
+        }
+        (b, o) => *b = o,
+    }
+}
+
 /// The resolution a map is built at.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -483,6 +515,54 @@ mod tests {
         assert_eq!(c.localize, d.localize);
         assert_eq!(c.place, d.place);
         assert_eq!(c.nerf, d.nerf);
+    }
+
+    /// A section that sets one field keeps the map's defaults for its other fields, also
+    /// where they differ from the field type's own default (the encoder's steps and head
+    /// phase, the structure's 2× detection); other enum variants and unknown keys replace or
+    /// fail as they would without the overlay.
+    #[test]
+    fn a_partial_file_keeps_the_map_defaults_below_the_section() {
+        let d = MapConfig::default();
+        let parse = |v: Value| -> Result<MapConfig, serde_json::Error> {
+            serde_json::from_value(MapConfig::overlay_on_default(v))
+        };
+        let c = parse(json!({
+            "encoder": {"train": {"net": {"width": 32}}},
+            "structure": {"triangulate": {"max_side": 200}},
+            "select": {"renders": {"max_views": 4}},
+        }))
+        .unwrap();
+        assert_eq!(c.encoder.train.net.width, 32);
+        assert_eq!(c.encoder.train.steps, d.encoder.train.steps);
+        assert_eq!(c.encoder.train.head_phase, d.encoder.train.head_phase);
+        assert_eq!(c.encoder.train.jitter, d.encoder.train.jitter);
+        assert!(c.structure.triangulate.upsample);
+        assert_eq!(c.select.renders.search, d.select.renders.search);
+        assert_eq!(c.select.renders.max_views, 4);
+        // Serde alone resets what the section leaves out to the type's defaults.
+        let plain: MapConfig =
+            serde_json::from_value(json!({"encoder": {"train": {"net": {"width": 32}}}})).unwrap();
+        assert_ne!(plain.encoder.train.head_phase, d.encoder.train.head_phase);
+        // Another variant of an internally tagged enum replaces the default's fields.
+        let kind = d.pairs.perturbation.kind;
+        let other = json!({"pairs": {"perturbation": {"kind": "Gaussian", "translation_m": 1.0, "rotation_deg": 2.0}}});
+        let c = parse(other.clone()).unwrap();
+        assert_ne!(c.pairs.perturbation.kind, kind);
+        assert_eq!(c.pairs.perturbation.translation_m, 1.0);
+        let c = parse(json!({"localize": {"pnp": {"refine": {"loss": {"kind": "trivial"}}}}}));
+        assert_eq!(
+            c.unwrap().localize.pnp.refine.loss,
+            matloc_pnp::RobustLoss::Trivial
+        );
+        // Unknown keys are still refused, nulls and arrays replace.
+        assert!(parse(json!({"encoder": {"train": {"stepz": 3}}})).is_err());
+        let c =
+            parse(json!({"partition": {"num_blocks": 2}, "images": {"max_side": null}})).unwrap();
+        assert_eq!(c.partition.num_blocks, Some(2));
+        let c = parse(json!({"encoder": {"train": {"net": {"dilations": [1]}}}})).unwrap();
+        assert_eq!(c.encoder.train.net.dilations, vec![1]);
+        assert_eq!(parse(json!({})).unwrap(), d);
     }
 
     /// `nerf.model_overrides` is free-form.

@@ -178,7 +178,8 @@ fn a_map_built_as_slurm_jobs_matches_the_in_process_build() {
     let _ = std::fs::remove_dir_all(&dir);
     let data = dir.join("data");
     synthesize(&SynthConfig::preset("tiny").unwrap(), &data, &|_| {}).unwrap();
-    let config: MapConfig = serde_json::from_value(tiny_config()).unwrap();
+    let config: MapConfig =
+        serde_json::from_value(MapConfig::overlay_on_default(tiny_config())).unwrap();
     let config_file = dir.join("config.json");
     std::fs::write(&config_file, tiny_config().to_string()).unwrap();
     let map_dir = dir.join("jobs_map");
