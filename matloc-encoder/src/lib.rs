@@ -105,6 +105,12 @@ pub struct EncoderConfig {
     /// from another flight").
     #[serde(default)]
     pub local_contrast: bool,
+    /// Standardise each RGB channel of every image (training and query) by its own mean and
+    /// spread before the network sees it: an exposure or white-balance change is a per-channel
+    /// gain, which this divides out. On by default (docs/DECISIONS.md, "The encoder
+    /// standardises its input"); checkpoints written without the field ran without it.
+    #[serde(default = "standardize_by_default")]
+    pub standardize_input: bool,
 }
 
 impl Default for EncoderConfig {
@@ -114,8 +120,13 @@ impl Default for EncoderConfig {
             dilations: vec![1, 2, 4, 8],
             head_hidden: vec![128, 128],
             local_contrast: false,
+            standardize_input: true,
         }
     }
+}
+
+fn standardize_by_default() -> bool {
+    true
 }
 
 #[derive(Module, Debug)]
@@ -396,9 +407,10 @@ pub fn local_contrast(img: &Image<f32>) -> Vec<f32> {
 
 fn image_tensor(
     images: &[Image<f32>],
-    local: bool,
+    cfg: &EncoderConfig,
     device: &Device,
 ) -> Result<Tensor<4>, EncoderError> {
+    let local = cfg.local_contrast;
     let (w, h, c) = images[0].shape();
     if c != 3 || w < 8 || h < 8 {
         return Err(EncoderError::BadInput(format!(
@@ -411,9 +423,14 @@ fn image_tensor(
             return Err(EncoderError::BadInput("images of different sizes".into()));
         }
         for ch in 0..3 {
+            let (offset, scale) = if cfg.standardize_input {
+                channel_standardisation(img, ch)
+            } else {
+                (0.5, 2.0)
+            };
             for y in 0..h {
                 for x in 0..w {
-                    data.push(2.0 * img.pixel(x, y)[ch] - 1.0);
+                    data.push(scale * (img.pixel(x, y)[ch] - offset));
                 }
             }
         }
@@ -426,6 +443,21 @@ fn image_tensor(
         TensorData::new(data, [images.len(), c, h, w]),
         device,
     ))
+}
+
+/// `(mean, 1 / (2 σ + ε · mean))` of channel `ch`: the input `(v − mean) / (2 σ)` has the
+/// spread of the unstandardised `2v − 1` on a typical image (σ ≈ 0.25), and a gain on the
+/// channel changes nothing (ε scales with it; it only keeps a flat channel finite).
+fn channel_standardisation(img: &Image<f32>, ch: usize) -> (f32, f32) {
+    let n = (img.data().len() / 3).max(1) as f64;
+    let (mut sum, mut sq) = (0.0f64, 0.0f64);
+    for v in img.data().iter().skip(ch).step_by(3) {
+        sum += *v as f64;
+        sq += (*v as f64) * (*v as f64);
+    }
+    let mean = sum / n;
+    let sd = (sq / n - mean * mean).max(0.0).sqrt();
+    (mean as f32, (1.0 / (2.0 * sd + 0.05 * mean + 1e-6)) as f32)
 }
 
 /// Crops the network output to the rendering grid (`⌊H/4⌋ × ⌊W/4⌋`).
@@ -464,11 +496,7 @@ impl QueryEncoder {
     /// Raw-domain feature map (`⌊H/4⌋ × ⌊W/4⌋ × dims`) of an RGB image.
     pub fn encode(&self, image: &Image<f32>) -> Result<FeatureMap, EncoderError> {
         let device = Device::flex();
-        let x = image_tensor(
-            std::slice::from_ref(image),
-            self.config.local_contrast,
-            &device,
-        )?;
+        let x = image_tensor(std::slice::from_ref(image), &self.config, &device)?;
         let (rows, cols) = (
             image.height() / ENCODER_STRIDE as usize,
             image.width() / ENCODER_STRIDE as usize,
@@ -535,8 +563,14 @@ impl QueryEncoder {
             }
             None => return Err(bad(format!("no {CHECKPOINT_KEY} metadata"))),
         };
-        let (config, dims, stats): (EncoderConfig, Vec<usize>, FeatureStats) =
+        let (mut config, dims, stats): (EncoderConfig, Vec<usize>, FeatureStats) =
             serde_json::from_str(json).map_err(|e| bad(e.to_string()))?;
+        // Encoders trained before input standardisation existed fed the raw image.
+        let meta_json: serde_json::Value =
+            serde_json::from_str(json).map_err(|e| bad(e.to_string()))?;
+        if meta_json[0].get("standardize_input").is_none() {
+            config.standardize_input = false;
+        }
         if stats.mean.len() != dims.len() || stats.std.len() != dims.len() || dims.is_empty() {
             return Err(bad("statistics do not match the dims".into()));
         }
@@ -641,7 +675,7 @@ pub fn train_encoder(
             .iter()
             .map(|&p| jitter(&samples[p], &cfg.jitter, &mut rng))
             .collect();
-        let x = image_tensor(&imgs, cfg.net.local_contrast, &device)?;
+        let x = image_tensor(&imgs, &cfg.net, &device)?;
         let mut tdata = Vec::with_capacity(bsz * d * cells);
         let mut mdata = Vec::with_capacity(bsz * cells);
         for &p in &picks {
@@ -799,7 +833,7 @@ fn train_head(
                     }
                 })
                 .collect();
-            let x = image_tensor(&imgs, cfg.net.local_contrast, &plain)?;
+            let x = image_tensor(&imgs, &cfg.net, &plain)?;
             let f = crop(trunk.forward(x), rows, cols);
             let v: Vec<f32> = f
                 .into_data()

@@ -60,6 +60,7 @@ fn small_config(steps: usize) -> EncoderTrainConfig {
             dilations: vec![1],
             head_hidden: vec![16],
             local_contrast: false,
+            standardize_input: false,
         },
         steps,
         batch: 4,
@@ -214,4 +215,66 @@ fn format_1_checkpoint_is_refused_with_a_typed_error() {
         }
         other => panic!("expected a format error, got {other:?}"),
     }
+}
+
+#[test]
+fn standardised_input_divides_out_a_gain_per_channel() {
+    let s = samples(6, 32, 3);
+    let mut cfg = small_config(20);
+    cfg.net.standardize_input = true;
+    let enc = train_encoder(&s, vec![3, 5, 8, 9], stats_of(&s), &cfg, &mut |_| {}).unwrap();
+    let img = &s[0].image;
+    let mut warmer = img.clone();
+    for (k, v) in warmer.data_mut().iter_mut().enumerate() {
+        *v *= [1.3, 1.1, 0.8][k % 3];
+    }
+    let (a, b) = (enc.encode(img).unwrap(), enc.encode(&warmer).unwrap());
+    for (x, y) in a.data().iter().zip(b.data()) {
+        assert!((x - y).abs() < 1e-3 * (1.0 + x.abs()), "{x} vs {y}");
+    }
+    // Without standardisation the same gain moves the features.
+    cfg.net.standardize_input = false;
+    let raw = train_encoder(&s, vec![3, 5, 8, 9], stats_of(&s), &cfg, &mut |_| {}).unwrap();
+    let (a, b) = (raw.encode(img).unwrap(), raw.encode(&warmer).unwrap());
+    let moved = a
+        .data()
+        .iter()
+        .zip(b.data())
+        .map(|(x, y)| (x - y).abs())
+        .sum::<f32>();
+    assert!(moved > 1e-2, "{moved}");
+}
+
+#[test]
+fn a_checkpoint_without_the_standardisation_field_loads_without_it() {
+    let s = samples(4, 32, 4);
+    let mut cfg = small_config(5);
+    cfg.net.standardize_input = false;
+    let enc = train_encoder(&s, vec![3, 5, 8, 9], stats_of(&s), &cfg, &mut |_| {}).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("enc.safetensors");
+    enc.save(&path).unwrap();
+    // Rewrite the metadata as an encoder trained before the field existed wrote it.
+    let bytes = std::fs::read(&path).unwrap();
+    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
+    let mut entries = meta.metadata().clone().unwrap();
+    let json = entries.get(CHECKPOINT_KEY).unwrap().clone();
+    assert!(json.contains(r#","standardize_input":false"#), "{json}");
+    entries.insert(
+        CHECKPOINT_KEY.to_string(),
+        json.replace(r#","standardize_input":false"#, ""),
+    );
+    let tensors = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let old = safetensors::serialize(tensors.tensors(), Some(entries)).unwrap();
+    let legacy = dir.path().join("legacy.safetensors");
+    std::fs::write(&legacy, old).unwrap();
+    let back = QueryEncoder::load(&legacy).unwrap();
+    assert!(!back.config().standardize_input);
+    assert_eq!(
+        back.encode(&s[0].image).unwrap().data(),
+        enc.encode(&s[0].image).unwrap().data()
+    );
+    // A configuration that does not name the field gets the default.
+    let cfg: EncoderConfig = serde_json::from_str(r#"{"width": 16}"#).unwrap();
+    assert!(cfg.standardize_input);
 }
