@@ -43,6 +43,11 @@ fn main() {
             "the study needs encoders of their blocks' rendered dims"
         );
     }
+    // `FLIGHT_DIMS=A-B` matches on the block dims A..=B only (the pipeline keeps all).
+    let selection: Option<Vec<usize>> = std::env::var("FLIGHT_DIMS").ok().map(|v| {
+        let (a, b) = v.split_once('-').expect("FLIGHT_DIMS=A-B");
+        (a.parse().expect("A")..=b.parse().expect("B")).collect()
+    });
     let solver = LoRansacPnp::default();
     let options = MethodOptions::default();
     println!(
@@ -79,7 +84,7 @@ fn main() {
                 .expect("no block renders the view");
             let encoded = blk.encoder.encode(&image).expect("encode");
             let query = QueryFeatures::new(encoded, blk.encoder.stride() as f64);
-            let tm = timed_match(blk.matcher.as_ref(), &query, &points, None)
+            let tm = timed_match(blk.matcher.as_ref(), &query, &points, selection.as_deref())
                 .unwrap_or_else(|_| matloc_match::localize::TimedMatches {
                     matches: Vec::new(),
                     elapsed: std::time::Duration::ZERO,

@@ -872,8 +872,9 @@ fn a_second_flight_localizes_close_to_the_same_flight() {
 
 /// The default method on the full second flight (sun turned 55° and lowered to 22°, exposure,
 /// white balance, a k1 = −0.05 lens, blur, noise) against the same flight's views at the same
-/// poses: the goal of a second-flight median within 1.5× of the same flight's, nothing wrong.
-/// Measured with patch alignment and tracking: 0.077 against 0.056 m (1.37×); without them
+/// poses: the goal of a second-flight median within 1.5× of the same flight's, nothing wrong,
+/// and at most two views fewer within 0.5 m. Measured with patch alignment and tracking:
+/// 0.072 against 0.052 m (1.38×), 9/10 against 10/10 within 0.5 m; without them
 /// the moved sun doubled the median (0.205 against 0.095 m).
 #[test]
 fn the_default_method_holds_up_on_a_second_flight() {
@@ -906,6 +907,13 @@ fn the_default_method_holds_up_on_a_second_flight() {
         "second flight median {:.3} m > 1.5 × {:.3} m",
         median(&err),
         median(&same_err)
+    );
+    // Recall at 0.5 m: at most two of the ten views lost to the other day.
+    assert!(
+        count_within(&err, 0.5) + 2 >= count_within(&same_err, 0.5),
+        "second flight {}/10 within 0.5 m, same flight {}/10",
+        count_within(&err, 0.5),
+        count_within(&same_err, 0.5)
     );
 }
 
