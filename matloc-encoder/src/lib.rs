@@ -11,6 +11,8 @@
 //! contrasts each sampled cell's L2-normalised prediction against the normalised targets of the
 //! other sampled cells of the same image (temperature `τ`).
 //!
+//! Input: the RGB image with each channel standardised by its own mean and spread
+//! ([`EncoderConfig::standardize_input`]), so exposure and white balance divide out.
 //! Architecture: two stride-2 3 × 3 convolutions (3 → w/2 → w), then dilated 3 × 3 residual
 //! blocks (dilations 1, 2, 4, 8 by default) for a ~70 px receptive field, then a per-cell MLP
 //! head ([`EncoderConfig::head_hidden`]). Training runs end to end, then optionally trains the
