@@ -1,8 +1,9 @@
-//! How a map's learned query encoder holds up on other query sets (a second flight, a lens):
-//! for each dataset's test views, the encoder of the block rendering most of the view against the NeRF features rendered at the
-//! true pose — MNN matches, correct ones (≤ 2 px and ≤ 8 px) and the PnP pose they give — and
-//! the whole MatLoc pipeline (`Method::Matloc`, the map's calibration): within 1 m, refused,
-//! false accepts (returned beyond 5 m or 10°).
+//! How a map's learned query encoders hold up on other query sets (a second flight, a lens):
+//! for each dataset's test views, the encoder of the block that renders most of the view
+//! against that block's NeRF features rendered at the true pose — MNN matches, correct ones
+//! (≤ 2 px and ≤ 8 px) and the PnP pose they give — and the whole MatLoc pipeline
+//! (`Method::Matloc`, the map's calibration): within 1 m, refused, false accepts (returned
+//! beyond 5 m or 10°). `FLIGHT_DIMS=A-B` matches on block dims A..=B only.
 //!
 //!     cargo run --release -p matloc-research --example flight_study -- MAP DATA [DATA ...]
 //!
