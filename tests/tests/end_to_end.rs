@@ -918,8 +918,10 @@ fn the_default_method_holds_up_on_a_second_flight() {
 }
 
 /// A query through a distorting lens (k1 = −0.05, same pose and light) localizes as well as
-/// its undistorted twin: with the perfect encoder from the same fixed starts (the geometry:
-/// rendering, matching and PnP through the lens model), and with the learned encoder.
+/// its undistorted twin: with the perfect encoder from the same fixed starts, three per view
+/// (the geometry: rendering, matching and PnP through the lens model), and with the learned
+/// encoder. With one start per view the perfect encoder's median over ten views swung from
+/// 0.084 to 0.212 m for the distorted twins between builds (0.094–0.127 m undistorted).
 #[test]
 fn a_distorted_query_localizes_as_well_as_its_undistorted_twin() {
     let b = built();
@@ -936,23 +938,27 @@ fn a_distorted_query_localizes_as_well_as_its_undistorted_twin() {
         assert!(within(&twin.cam_from_world, &f.cam_from_world, 1e-6, 1e-6));
         let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
         let distorted = matloc_synth::flight::render_second_flight(&world, &config, &lens, twin, i);
-        let start = FixedStart(start_of(&f.cam_from_world, i));
         let err = |p: Option<Pose>| {
             p.map_or(f64::INFINITY, |p| {
                 translation_error_m(&p, &f.cam_from_world)
             })
         };
-        plain.push(err(perfect_encoder_pose(
-            &map, &start, &image, camera, f, None,
-        )));
-        bent.push(err(perfect_encoder_pose(
-            &map,
-            &start,
-            &distorted,
-            twin.camera,
-            f,
-            None,
-        )));
+        // Three starts per view, as in the surface comparison: a median over 30 runs, so that
+        // a few views' luck with the matches does not decide it.
+        for k in 0..STARTS_PER_VIEW {
+            let start = FixedStart(start_of(&f.cam_from_world, i + 10 * k));
+            plain.push(err(perfect_encoder_pose(
+                &map, &start, &image, camera, f, None,
+            )));
+            bent.push(err(perfect_encoder_pose(
+                &map,
+                &start,
+                &distorted,
+                twin.camera,
+                f,
+                None,
+            )));
+        }
         let learned = |img: &Image<f32>, cam: &matloc_core::Camera| {
             localize_with(&map, Method::Matloc, "q", img, cam, &options)
                 .unwrap()
