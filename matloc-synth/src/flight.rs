@@ -155,14 +155,21 @@ impl SecondFlight {
     }
 }
 
-/// The test views of `config`'s survey as the second flight sees them: same poses, the
-/// second flight's lens, image paths `images/frame_NNNNN.png` relative to the flight's folder.
+/// The world under the second flight's sun and the test views of `config`'s survey as the
+/// flight sees them: same poses, the flight's lens, image paths `images/frame_NNNNN.png`
+/// relative to the flight's folder.
 pub fn second_flight_frames(
     config: &SynthConfig,
     flight: &SecondFlight,
 ) -> Result<(World, Vec<Frame>), SynthError> {
     flight.validate()?;
     let (world, plan) = generate(config)?;
+    let world = if flight.sun_azimuth_shift_deg != 0.0 || flight.sun_elevation_deg.is_some() {
+        let (az, el) = flight_sun(config, flight);
+        world.with_sun(az, el)?
+    } else {
+        world
+    };
     let distortion = flight.distortion();
     let frames = plan
         .frames
@@ -183,8 +190,8 @@ pub fn second_flight_frames(
     Ok((world, frames))
 }
 
-/// Renders one second-flight view: the changed sun, exposure and white balance in the
-/// renderer, then blur and noise on the display-encoded image (8-bit quantisation happens when
+/// Renders one second-flight view of `world` (from [`second_flight_frames`], which sets the
+/// flight's sun): exposure and white balance in the renderer, then blur and noise on the display-encoded image (8-bit quantisation happens when
 /// it is written).
 pub fn render_second_flight(
     world: &World,
@@ -241,8 +248,6 @@ pub fn synthesize_second_flight(
     progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<Dataset, SynthError> {
     let (world, frames) = second_flight_frames(config, flight)?;
-    let (az, el) = flight_sun(config, flight);
-    let world = world.with_sun(az, el)?;
     let images = out_dir.join("images");
     std::fs::create_dir_all(&images).map_err(|source| SynthError::Io {
         path: images.clone(),
