@@ -262,10 +262,10 @@ pub fn read_config(path: &Path) -> Result<MapConfig> {
             }
         );
     }
-    // The path of the offending key (`nerf.steps`) goes into the message, which serde alone
-    // gives only as a line and column.
     // Keys left out keep the map's defaults, also inside a section.
     let value = MapConfig::overlay_on_default(value);
+    // The path of the offending key (`nerf.steps`) goes into the message, which serde alone
+    // gives only as a line and column.
     serde_path_to_error::deserialize(value).map_err(|e| {
         anyhow::anyhow!(
             "map config {}: field `{}`: {}",

@@ -565,12 +565,12 @@ impl QueryEncoder {
             }
             None => return Err(bad(format!("no {CHECKPOINT_KEY} metadata"))),
         };
-        let (mut config, dims, stats): (EncoderConfig, Vec<usize>, FeatureStats) =
-            serde_json::from_str(json).map_err(|e| bad(e.to_string()))?;
+        let meta: serde_json::Value = serde_json::from_str(json).map_err(|e| bad(e.to_string()))?;
         // Encoders trained before input standardisation existed fed the raw image.
-        let meta_json: serde_json::Value =
-            serde_json::from_str(json).map_err(|e| bad(e.to_string()))?;
-        if meta_json[0].get("standardize_input").is_none() {
+        let legacy_input = meta[0].get("standardize_input").is_none();
+        let (mut config, dims, stats): (EncoderConfig, Vec<usize>, FeatureStats) =
+            serde_json::from_value(meta).map_err(|e| bad(e.to_string()))?;
+        if legacy_input {
             config.standardize_input = false;
         }
         if stats.mean.len() != dims.len() || stats.std.len() != dims.len() || dims.is_empty() {

@@ -164,12 +164,8 @@ pub fn second_flight_frames(
 ) -> Result<(World, Vec<Frame>), SynthError> {
     flight.validate()?;
     let (world, plan) = generate(config)?;
-    let world = if flight.sun_azimuth_shift_deg != 0.0 || flight.sun_elevation_deg.is_some() {
-        let (az, el) = flight_sun(config, flight);
-        world.with_sun(az, el)?
-    } else {
-        world
-    };
+    let (az, el) = flight_sun(config, flight);
+    let world = world.with_sun(az, el)?;
     let distortion = flight.distortion();
     let frames = plan
         .frames
@@ -191,8 +187,8 @@ pub fn second_flight_frames(
 }
 
 /// Renders one second-flight view of `world` (from [`second_flight_frames`], which sets the
-/// flight's sun): exposure and white balance in the renderer, then blur and noise on the display-encoded image (8-bit quantisation happens when
-/// it is written).
+/// flight's sun): exposure and white balance in the renderer, then blur and noise on the
+/// display-encoded image (8-bit quantisation happens when it is written).
 pub fn render_second_flight(
     world: &World,
     config: &SynthConfig,

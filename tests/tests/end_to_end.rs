@@ -832,7 +832,8 @@ fn nearby_queries(
     (world, nearby)
 }
 
-/// [`learned_errors`] on `frames` rendered in memory as `flight` shoots them.
+/// [`learned_errors`] on the queries near the test views ([`nearby_queries`]), rendered in
+/// memory as `flight` shoots them.
 fn learned_errors_rendered(
     map: &LoadedMap,
     config: &SynthConfig,
