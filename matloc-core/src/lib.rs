@@ -9,6 +9,8 @@
 //!   (the COLMAP / nerfstudio convention), so the image spans `[0, W] × [0, H]`.
 //! - Geometry is `f64`; images and features are `f32`.
 
+#[cfg(feature = "burn")]
+pub mod backend;
 pub mod camera;
 pub mod fsutil;
 pub mod hash;

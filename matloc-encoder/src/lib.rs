@@ -665,9 +665,10 @@ pub fn train_encoder(
     let device = Device::flex().autodiff();
     // Weight initialisation draws from the backend's generator: seeded, so that the same
     // samples and config train the same encoder (a map built by block jobs equals one built
-    // in one process).
-    device.seed(cfg.seed);
-    let mut net = Net::new(&cfg.net, d, &device);
+    // in one process), under the process-wide lock so a concurrent training cannot draw in
+    // between.
+    let mut net =
+        matloc_core::backend::seeded_module(&device, cfg.seed, || Net::new(&cfg.net, d, &device));
     let mut optim = AdamConfig::new().init();
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let bsz = cfg.batch.min(samples.len());

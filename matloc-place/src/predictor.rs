@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::prelude::*;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
+use matloc_core::backend::seeded_module;
 use matloc_core::pose::{camera_center, viewing_direction};
 use matloc_core::{Camera, Image, Pose};
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
@@ -399,18 +400,15 @@ impl PlaceModel {
             .collect();
 
         let device = Device::flex().autodiff();
-        // Whatever the backend draws from its own generator is seeded too.
-        device.seed(config.seed);
+        // Whatever the backend draws from its own generator is seeded too, under the
+        // process-wide lock so a concurrent training cannot draw in between.
         let mut net = match method {
-            PlaceMethod::ArcFace => Net::ArcFace(ArcFaceNet::new(
-                &net_cfg,
-                groups.len(),
-                config.seed,
-                &device,
-            )),
-            PlaceMethod::Regression => {
-                Net::Regression(RegressionNet::new(&net_cfg, config.seed, &device))
-            }
+            PlaceMethod::ArcFace => Net::ArcFace(seeded_module(&device, config.seed, || {
+                ArcFaceNet::new(&net_cfg, groups.len(), config.seed, &device)
+            })),
+            PlaceMethod::Regression => Net::Regression(seeded_module(&device, config.seed, || {
+                RegressionNet::new(&net_cfg, config.seed, &device)
+            })),
         };
         let mut optim = AdamConfig::new().init();
         let n = sources.len();
