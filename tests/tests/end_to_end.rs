@@ -832,25 +832,48 @@ fn nearby_queries(
     (world, nearby)
 }
 
-/// [`learned_errors`] on the queries near the test views ([`nearby_queries`]), rendered in
-/// memory as `flight` shoots them.
+/// The queries near the test views ([`nearby_queries`]), rendered in memory as `flight`
+/// shoots them.
+fn nearby_renders(
+    config: &SynthConfig,
+    flight: &matloc_synth::SecondFlight,
+) -> Vec<(matloc_data::Frame, Image<f32>)> {
+    let (world, frames) = nearby_queries(config, flight);
+    frames
+        .into_iter()
+        .enumerate()
+        .map(|(j, f)| {
+            let image =
+                matloc_synth::flight::render_second_flight(&world, config, flight, &f, 100 + j);
+            (f, image)
+        })
+        .collect()
+}
+
+/// MatLoc's error on one image with the learned encoder ([`error_or_wrong`]).
+fn learned_error(
+    map: &LoadedMap,
+    image: &Image<f32>,
+    camera: &matloc_core::Camera,
+    truth: &Pose,
+    wrong: &mut usize,
+) -> f64 {
+    let options = MethodOptions::default();
+    let r = localize_with(map, Method::Matloc, "q", image, camera, &options).unwrap();
+    error_or_wrong(r.cam_from_world, truth, wrong)
+}
+
+/// [`learned_errors`] on [`nearby_renders`].
 fn learned_errors_rendered(
     map: &LoadedMap,
     config: &SynthConfig,
     flight: &matloc_synth::SecondFlight,
 ) -> (Vec<f64>, usize) {
-    let (world, frames) = nearby_queries(config, flight);
-    let options = MethodOptions::default();
-    let (mut errors, mut wrong) = (Vec::new(), 0);
-    for (j, f) in frames.iter().enumerate() {
-        let image = matloc_synth::flight::render_second_flight(&world, config, flight, f, 100 + j);
-        let r = localize_with(map, Method::Matloc, "q", &image, &f.camera, &options).unwrap();
-        errors.push(error_or_wrong(
-            r.cam_from_world,
-            &f.cam_from_world,
-            &mut wrong,
-        ));
-    }
+    let mut wrong = 0;
+    let errors = nearby_renders(config, flight)
+        .iter()
+        .map(|(f, image)| learned_error(map, image, &f.camera, &f.cam_from_world, &mut wrong))
+        .collect();
     (errors, wrong)
 }
 
@@ -993,7 +1016,6 @@ fn a_distorted_query_localizes_as_well_as_its_undistorted_twin() {
     let (world, frames) = matloc_synth::flight::second_flight_frames(&config, &lens).unwrap();
     let map = LoadedMap::open(&b.map_dir).unwrap();
     let same: Vec<_> = b.dataset.split(Split::Test).collect();
-    let options = MethodOptions::default();
     let (mut plain, mut bent) = (Vec::new(), Vec::new());
     let (mut plain_learned, mut bent_learned) = (Vec::new(), Vec::new());
     for (i, (twin, f)) in frames.iter().zip(&same).enumerate() {
@@ -1006,8 +1028,8 @@ fn a_distorted_query_localizes_as_well_as_its_undistorted_twin() {
                 translation_error_m(&p, &f.cam_from_world)
             })
         };
-        // Three starts per view, as in the surface comparison: a median over 30 runs, so that
-        // a few views' luck with the matches does not decide it.
+        // Three starts per view, as in the surface comparison, so that a few views' luck with
+        // the matches does not decide the median.
         for k in 0..STARTS_PER_VIEW {
             let start = FixedStart(start_of(&f.cam_from_world, i + 10 * k));
             plain.push(err(perfect_encoder_pose(
@@ -1022,48 +1044,34 @@ fn a_distorted_query_localizes_as_well_as_its_undistorted_twin() {
                 None,
             )));
         }
-        let learned = |img: &Image<f32>, cam: &matloc_core::Camera| {
-            localize_with(&map, Method::Matloc, "q", img, cam, &options)
-                .unwrap()
-                .cam_from_world
-                .filter(|p| within(p, &f.cam_from_world, 5.0, 10.0))
-        };
-        plain_learned.push(err(learned(&image, &camera)));
-        bent_learned.push(err(learned(&distorted, &twin.camera)));
+        let truth = &f.cam_from_world;
+        plain_learned.push(learned_error(&map, &image, &camera, truth, &mut 0));
+        bent_learned.push(learned_error(&map, &distorted, &twin.camera, truth, &mut 0));
     }
-    // The perfect encoder on the two twins near each view as well: 90 runs per twin.
-    let pinhole = matloc_synth::SecondFlight::same_flight();
-    let (plain_world, near_plain) = nearby_queries(&config, &pinhole);
-    let (bent_world, near_bent) = nearby_queries(&config, &lens);
-    for (j, (p, d)) in near_plain.iter().zip(&near_bent).enumerate() {
+    // The two twins near each view, rendered in memory through a pinhole and the lens: the
+    // perfect encoder from three starts each (90 runs per twin) and the learned encoder.
+    let near_plain = nearby_renders(&config, &matloc_synth::SecondFlight::same_flight());
+    let near_bent = nearby_renders(&config, &lens);
+    for (j, ((p, pi), (d, di))) in near_plain.iter().zip(&near_bent).enumerate() {
         assert!(within(&p.cam_from_world, &d.cam_from_world, 1e-9, 1e-9));
-        let render = matloc_synth::flight::render_second_flight;
-        let pi = render(&plain_world, &config, &pinhole, p, 100 + j);
-        let di = render(&bent_world, &config, &lens, d, 100 + j);
-        let err = |q: Option<Pose>| {
-            q.map_or(f64::INFINITY, |q| {
-                translation_error_m(&q, &p.cam_from_world)
-            })
-        };
+        let truth = &p.cam_from_world;
+        let err = |q: Option<Pose>| q.map_or(f64::INFINITY, |q| translation_error_m(&q, truth));
         for k in 0..STARTS_PER_VIEW {
-            let start = FixedStart(start_of(&p.cam_from_world, 100 + j + 100 * k));
+            let start = FixedStart(start_of(truth, 100 + j + 100 * k));
             plain.push(err(perfect_encoder_pose(
-                &map, &start, &pi, p.camera, p, None,
+                &map, &start, pi, p.camera, p, None,
             )));
             bent.push(err(perfect_encoder_pose(
-                &map, &start, &di, d.camera, d, None,
+                &map, &start, di, d.camera, d, None,
             )));
         }
+        plain_learned.push(learned_error(&map, pi, &p.camera, truth, &mut 0));
+        bent_learned.push(learned_error(&map, di, &d.camera, truth, &mut 0));
     }
     for v in [&mut plain, &mut bent] {
         v.sort_by(f64::total_cmp);
     }
     assert_eq!((plain.len(), bent.len()), (90, 90));
-    // Two more twins near each view, rendered in memory through a pinhole and the lens.
-    plain_learned.extend(
-        learned_errors_rendered(&map, &config, &matloc_synth::SecondFlight::same_flight()).0,
-    );
-    bent_learned.extend(learned_errors_rendered(&map, &config, &lens).0);
     let n = plain_learned.len();
     assert_eq!((n, bent_learned.len()), (30, 30));
     eprintln!(
