@@ -18,6 +18,7 @@ pub mod image;
 pub mod limits;
 pub mod metrics;
 pub mod pose;
+pub mod shadow;
 pub mod subset;
 
 pub use camera::{Camera, CameraError, Distortion};

@@ -562,33 +562,3 @@ mod tests {
         assert_eq!(a, b);
     }
 }
-
-#[cfg(test)]
-mod local_contrast_tests {
-    use crate::local_contrast;
-    use matloc_core::Image;
-
-    #[test]
-    fn local_contrast_divides_out_smooth_shading() {
-        let (w, h) = (40, 30);
-        let texture: Vec<f32> = (0..w * h * 3)
-            .map(|i| 0.3 + 0.4 * (((i / 3) * 7919 % 97) as f32 / 97.0))
-            .collect();
-        let img = Image::from_vec(w, h, 3, texture.clone()).unwrap();
-        // The same texture under a shadow: linear light × 0.25 (display × 0.25^(1/2.2)).
-        let dim = 0.25f32.powf(1.0 / 2.2);
-        let shaded = Image::from_vec(w, h, 3, texture.iter().map(|v| v * dim).collect()).unwrap();
-        let (a, b) = (local_contrast(&img), local_contrast(&shaded));
-        assert_eq!(a.len(), 3 * w * h);
-        let worst = a
-            .iter()
-            .zip(&b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0, f32::max);
-        assert!(
-            worst < 0.02,
-            "shading changed the local contrast by {worst}"
-        );
-        assert!(a.iter().any(|v| v.abs() > 0.1), "texture lost");
-    }
-}

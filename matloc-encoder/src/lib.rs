@@ -12,7 +12,8 @@
 //! other sampled cells of the same image (temperature `τ`).
 //!
 //! Input: the RGB image with each channel standardised by its own mean and spread
-//! ([`EncoderConfig::standardize_input`]), so exposure and white balance divide out.
+//! ([`EncoderConfig::standardize_input`]), so exposure and white balance divide out; or, as an
+//! option, its two shadow-invariant channels ([`EncoderConfig::shadow_invariant`]).
 //! Architecture: two stride-2 3 × 3 convolutions (3 → w/2 → w), then dilated 3 × 3 residual
 //! blocks (dilations 1, 2, 4, 8 by default) for a ~70 px receptive field, then a per-cell MLP
 //! head ([`EncoderConfig::head_hidden`]). Training runs end to end, then optionally trains the
@@ -21,6 +22,7 @@
 //! ([`CHECKPOINT_KEY`]); format-1 files are refused with a typed error.
 
 mod augment;
+mod input;
 
 pub use augment::JitterConfig;
 use augment::jitter;
@@ -32,6 +34,8 @@ use burn::optim::{AdamConfig, GradientsParams};
 use burn::prelude::*;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
 use burn::tensor::activation::{log_softmax, relu};
+use input::input_channels;
+pub use input::{local_contrast, shadow_invariant};
 use matloc_core::{FeatureMap, Image};
 use matloc_match::FeatureStats;
 use matloc_match::RenderedView;
@@ -107,6 +111,12 @@ pub struct EncoderConfig {
     /// from another flight").
     #[serde(default)]
     pub local_contrast: bool,
+    /// Replace the RGB channels by the two channels of the log-linear colour orthogonal to the
+    /// lit-to-shadow direction ([`shadow_invariant`]): a surface moving into or out of a cast
+    /// shadow (losing its sunlight, keeping the bluer sky light) keeps its value there, so
+    /// shadows of another sun neither appear nor vanish in what the network sees.
+    #[serde(default)]
+    pub shadow_invariant: bool,
     /// Standardise each RGB channel of every image (training and query) by its own mean and
     /// spread before the network sees it: an exposure or white-balance change is a per-channel
     /// gain, which this divides out. On by default (docs/DECISIONS.md, "The encoder
@@ -122,6 +132,7 @@ impl Default for EncoderConfig {
             dilations: vec![1, 2, 4, 8],
             head_hidden: vec![128, 128],
             local_contrast: false,
+            shadow_invariant: false,
             standardize_input: true,
         }
     }
@@ -366,100 +377,24 @@ pub struct QueryEncoder {
     net: Net,
 }
 
-/// Channels of the network input: RGB, plus the local contrast when configured.
-fn input_channels(cfg: &EncoderConfig) -> usize {
-    if cfg.local_contrast { 6 } else { 3 }
-}
-
-/// Half-width of the local-mean window of [`local_contrast`], pixels.
-const LOCAL_RADIUS: usize = 6;
-
-/// Local contrast of an RGB image, channel-major `3 × H × W`: `ln(L / (mean₁₃ₓ₁₃(L) + ε)) / 2`
-/// clamped to ±1.5, with `L` the channel's linear light (display value^2.2) and the mean over a
-/// 13 × 13 window (clamped at the border).
-pub fn local_contrast(img: &Image<f32>) -> Vec<f32> {
-    let (w, h, _) = img.shape();
-    let mut out = Vec::with_capacity(3 * w * h);
-    let r = LOCAL_RADIUS;
-    for ch in 0..3 {
-        let lin: Vec<f32> = (0..w * h)
-            .map(|i| img.data()[i * 3 + ch].max(0.0).powf(2.2))
-            .collect();
-        // Separable box mean with clamped indices.
-        let mut rows = vec![0.0f32; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
-                let sum: f32 = lin[y * w + a..=y * w + b].iter().sum();
-                rows[y * w + x] = sum / (b - a + 1) as f32;
-            }
-        }
-        for y in 0..h {
-            let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
-            for x in 0..w {
-                let sum: f32 = (a..=b).map(|yy| rows[yy * w + x]).sum();
-                let mean = sum / (b - a + 1) as f32;
-                let v = (lin[y * w + x] + 1e-3) / (mean + 1e-3);
-                out.push((0.5 * v.ln()).clamp(-1.5, 1.5));
-            }
-        }
-    }
-    out
-}
-
 fn image_tensor(
     images: &[Image<f32>],
     cfg: &EncoderConfig,
     device: &Device,
 ) -> Result<Tensor<4>, EncoderError> {
-    let local = cfg.local_contrast;
-    let (w, h, c) = images[0].shape();
-    if c != 3 || w < 8 || h < 8 {
-        return Err(EncoderError::BadInput(format!(
-            "need an RGB image of at least 8 x 8, got {w} x {h} x {c}"
-        )));
-    }
-    let mut data = Vec::with_capacity(images.len() * 6 * h * w);
+    let (w, h, _) = images[0].shape();
+    let c = input_channels(cfg);
+    let mut data = Vec::with_capacity(images.len() * c * h * w);
     for img in images {
-        if img.shape() != (w, h, c) {
+        if img.shape().0 != w || img.shape().1 != h {
             return Err(EncoderError::BadInput("images of different sizes".into()));
         }
-        for ch in 0..3 {
-            let (offset, scale) = if cfg.standardize_input {
-                channel_standardisation(img, ch)
-            } else {
-                (0.5, 2.0)
-            };
-            for y in 0..h {
-                for x in 0..w {
-                    data.push(scale * (img.pixel(x, y)[ch] - offset));
-                }
-            }
-        }
-        if local {
-            data.extend(local_contrast(img));
-        }
+        data.extend(input::planes(img, cfg)?);
     }
-    let c = if local { 6 } else { 3 };
     Ok(Tensor::<4>::from_data(
         TensorData::new(data, [images.len(), c, h, w]),
         device,
     ))
-}
-
-/// `(mean, 1 / (2 σ + ε · mean))` of channel `ch`: the input `(v − mean) / (2 σ)` has the
-/// spread of the unstandardised `2v − 1` on a typical image (σ ≈ 0.25), and a gain on the
-/// channel changes nothing (ε scales with it; it only keeps a flat channel finite).
-fn channel_standardisation(img: &Image<f32>, ch: usize) -> (f32, f32) {
-    let n = (img.data().len() / 3).max(1) as f64;
-    let (mut sum, mut sq) = (0.0f64, 0.0f64);
-    for v in img.data().iter().skip(ch).step_by(3) {
-        sum += *v as f64;
-        sq += (*v as f64) * (*v as f64);
-    }
-    let mean = sum / n;
-    let sd = (sq / n - mean * mean).max(0.0).sqrt();
-    (mean as f32, (1.0 / (2.0 * sd + 0.05 * mean + 1e-6)) as f32)
 }
 
 /// Crops the network output to the rendering grid (`⌊H/4⌋ × ⌊W/4⌋`).

@@ -60,6 +60,7 @@ fn small_config(steps: usize) -> EncoderTrainConfig {
             dilations: vec![1],
             head_hidden: vec![16],
             local_contrast: false,
+            shadow_invariant: false,
             standardize_input: false,
         },
         steps,
@@ -277,4 +278,58 @@ fn a_checkpoint_without_the_standardisation_field_loads_without_it() {
     // A configuration that does not name the field gets the default.
     let cfg: EncoderConfig = serde_json::from_str(r#"{"width": 16}"#).unwrap();
     assert!(cfg.standardize_input);
+}
+
+/// `img` with its left half in a cast shadow: each channel's linear light keeps only the sky's
+/// share of sun (2.5× the sky) + sky, the light model the shadow-invariant input assumes.
+fn left_half_shadowed(img: &Image<f32>) -> Image<f32> {
+    let (sun, sky) = ([1.0f32, 0.96, 0.88], [0.55f32, 0.65, 0.85]);
+    let mut out = img.clone();
+    let w = img.width();
+    for (i, px) in out.data_mut().chunks_exact_mut(3).enumerate() {
+        if i % w < w / 2 {
+            for k in 0..3 {
+                let ratio = sky[k] / (2.5 * sun[k] + sky[k]);
+                px[k] = (px[k].powf(2.2) * ratio).powf(1.0 / 2.2);
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn a_shadow_invariant_encoder_ignores_a_cast_shadow_and_roundtrips() {
+    let s = samples(6, 32, 5);
+    let mut cfg = small_config(20);
+    cfg.net.shadow_invariant = true;
+    let enc = train_encoder(&s, vec![3, 5, 8, 9], stats_of(&s), &cfg, &mut |_| {}).unwrap();
+    let img = &s[0].image;
+    let shadowed = left_half_shadowed(img);
+    let moved = |e: &QueryEncoder| {
+        let (a, b) = (e.encode(img).unwrap(), e.encode(&shadowed).unwrap());
+        a.data()
+            .iter()
+            .zip(b.data())
+            .map(|(x, y)| (x - y).abs())
+            .sum::<f32>()
+    };
+    let invariant = moved(&enc);
+    // The same shadow moves the features of an encoder on standardised RGB.
+    cfg.net.shadow_invariant = false;
+    cfg.net.standardize_input = true;
+    let rgb = train_encoder(&s, vec![3, 5, 8, 9], stats_of(&s), &cfg, &mut |_| {}).unwrap();
+    let seen = moved(&rgb);
+    assert!(
+        invariant < 0.1 * seen,
+        "the shadow moved the invariant encoder's features by {invariant}, RGB's by {seen}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("enc.safetensors");
+    enc.save(&path).unwrap();
+    let back = QueryEncoder::load(&path).unwrap();
+    assert!(back.config().shadow_invariant);
+    let (a, b) = (enc.encode(img).unwrap(), back.encode(img).unwrap());
+    for (x, y) in a.data().iter().zip(b.data()) {
+        assert!((x - y).abs() < 1e-5);
+    }
 }

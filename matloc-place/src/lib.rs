@@ -6,8 +6,10 @@
 //! each group knows the sub-NeRF block that serves it. The place classifier ([`model`]) is a small
 //! CNN (burn, `flex` CPU backend, trained from scratch) whose L2-normalised embedding is trained
 //! with the ArcFace additive angular margin loss over the groups, on augmented images
-//! ([`augment`]). The baseline regresses translation + quaternion (PoseNet-style) on the same
-//! backbone. Both sit behind [`PlacePredictor`] ([`predictor`]).
+//! ([`augment`]). The network sees the image's two shadow-invariant channels
+//! ([`NetConfig::shadow_invariant`]), so photos under another sun, exposure or white balance
+//! look like the map's. The baseline regresses translation + quaternion (PoseNet-style) on the
+//! same backbone. Both sit behind [`PlacePredictor`] ([`predictor`]).
 
 pub mod augment;
 pub mod error;

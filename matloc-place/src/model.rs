@@ -24,6 +24,13 @@ pub struct NetConfig {
     pub base_channels: usize,
     /// Embedding size.
     pub embedding_dim: usize,
+    /// Feed the network the image's two shadow-invariant channels
+    /// ([`matloc_core::shadow::shadow_invariant`], each standardised) instead of its RGB, so a
+    /// photo under another sun, exposure or white balance looks like the map's. On for new
+    /// maps (docs/DECISIONS.md, "The place predictor sees a shadow-invariant image"); models
+    /// saved without the field read RGB.
+    #[serde(default)]
+    pub shadow_invariant: bool,
 }
 
 impl Default for NetConfig {
@@ -33,11 +40,17 @@ impl Default for NetConfig {
             input_height: 48,
             base_channels: 16,
             embedding_dim: 64,
+            shadow_invariant: true,
         }
     }
 }
 
 impl NetConfig {
+    /// Channels of the network input: RGB, or the two shadow-invariant channels.
+    pub fn input_channels(&self) -> usize {
+        if self.shadow_invariant { 2 } else { 3 }
+    }
+
     /// Feature-map size after the four poolings.
     fn flat_features(&self) -> usize {
         4 * self.base_channels * (self.input_width / 16) * (self.input_height / 16)
@@ -114,7 +127,7 @@ impl Backbone {
     pub fn new(cfg: &NetConfig, rng: &mut ChaCha8Rng, device: &Device) -> Backbone {
         let c = cfg.base_channels;
         Backbone {
-            b1: ConvBlock::new(3, c, rng, device),
+            b1: ConvBlock::new(cfg.input_channels(), c, rng, device),
             b2: ConvBlock::new(c, 2 * c, rng, device),
             b3: ConvBlock::new(2 * c, 4 * c, rng, device),
             b4: ConvBlock::new(4 * c, 4 * c, rng, device),
@@ -122,7 +135,7 @@ impl Backbone {
         }
     }
 
-    /// `[B, 3, H, W]` images → `[B, D]` raw (unnormalised) embeddings.
+    /// `[B, C, H, W]` images → `[B, D]` raw (unnormalised) embeddings.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<2> {
         let x = self
             .b4
@@ -386,7 +399,8 @@ mod tests {
         let device = Device::flex();
         let cfg = NetConfig::default();
         let net = ArcFaceNet::new(&cfg, 6, 1, &device).valid();
-        let x = Tensor::<4>::zeros([2, 3, cfg.input_height, cfg.input_width], &device);
+        let c = cfg.input_channels();
+        let x = Tensor::<4>::zeros([2, c, cfg.input_height, cfg.input_width], &device);
         let e: Vec<f32> = net.embed(x.clone()).into_data().try_into_vec().unwrap();
         assert_eq!(e.len(), 2 * cfg.embedding_dim);
         for row in e.chunks(cfg.embedding_dim) {
@@ -398,9 +412,26 @@ mod tests {
         assert!(cos.iter().all(|c| c.abs() <= 1.0 + 1e-5));
         let reg = RegressionNet::new(&cfg, 1, &device).valid();
         let out = reg.forward(Tensor::<4>::zeros(
-            [3, 3, cfg.input_height, cfg.input_width],
+            [3, c, cfg.input_height, cfg.input_width],
             &device,
         ));
         assert_eq!(out.dims(), [3, 7]);
+    }
+
+    /// New configurations read the shadow-invariant channels; a configuration saved before
+    /// the field existed reads RGB, as its weights were trained on.
+    #[test]
+    fn the_input_is_shadow_invariant_unless_the_saved_config_predates_it() {
+        let d = NetConfig::default();
+        assert!(d.shadow_invariant);
+        assert_eq!(d.input_channels(), 2);
+        let old: NetConfig = serde_json::from_str(
+            r#"{"input_width": 64, "input_height": 48, "base_channels": 16, "embedding_dim": 64}"#,
+        )
+        .unwrap();
+        assert!(!old.shadow_invariant);
+        assert_eq!(old.input_channels(), 3);
+        let back: NetConfig = serde_json::from_str(&serde_json::to_string(&d).unwrap()).unwrap();
+        assert_eq!(back, d);
     }
 }

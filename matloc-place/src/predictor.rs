@@ -8,6 +8,7 @@ use burn::prelude::*;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
 use matloc_core::backend::seeded_module;
 use matloc_core::pose::{camera_center, viewing_direction};
+use matloc_core::shadow::{shadow_invariant, standardise};
 use matloc_core::{Camera, Image, Pose};
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
@@ -229,9 +230,18 @@ fn check_images(images: &[Image<f32>]) -> Result<(), PlaceError> {
     Ok(())
 }
 
-/// HWC `[0, 1]` images → CHW values centred at 0.5, appended to `out`.
-fn push_chw(img: &Image<f32>, out: &mut Vec<f32>) {
+/// An HWC `[0, 1]` image → the network's CHW input, appended to `out`: its shadow-invariant
+/// channels standardised to unit spread, or its RGB centred at 0.5 (spread about 1).
+fn push_chw(img: &Image<f32>, cfg: &NetConfig, out: &mut Vec<f32>) {
     let (w, h) = (img.width(), img.height());
+    if cfg.shadow_invariant {
+        let mut planes = shadow_invariant(img);
+        for plane in planes.chunks_exact_mut(w * h) {
+            standardise(plane, 1.0);
+        }
+        out.extend(planes);
+        return;
+    }
     let d = img.data();
     for k in 0..3 {
         for i in 0..w * h {
@@ -241,12 +251,13 @@ fn push_chw(img: &Image<f32>, out: &mut Vec<f32>) {
 }
 
 fn input_tensor(images: &[Image<f32>], cfg: &NetConfig, device: &Device) -> Tensor<4> {
-    let mut buf = Vec::with_capacity(images.len() * 3 * cfg.input_width * cfg.input_height);
+    let c = cfg.input_channels();
+    let mut buf = Vec::with_capacity(images.len() * c * cfg.input_width * cfg.input_height);
     for img in images {
-        push_chw(img, &mut buf);
+        push_chw(img, cfg, &mut buf);
     }
     Tensor::from_data(
-        TensorData::new(buf, [images.len(), 3, cfg.input_height, cfg.input_width]),
+        TensorData::new(buf, [images.len(), c, cfg.input_height, cfg.input_width]),
         device,
     )
 }
