@@ -8,10 +8,14 @@
 
 use crate::Image;
 
+/// Colour of direct sunlight the invariant assumes (yellowish; the synthetic world's).
+pub const SUN_COLOUR: [f32; 3] = [1.0, 0.96, 0.88];
+/// Colour of the sky light a shadow keeps (bluish; the synthetic world's).
+pub const SKY_COLOUR: [f32; 3] = [0.55, 0.65, 0.85];
+
 /// Direction, in log linear RGB, in which a surface's colour moves when it leaves a cast
-/// shadow: `ln(sun + sky) − ln(sky)` for a yellowish sun `(1, 0.96, 0.88)` 2.5 times the
-/// strength of a blue sky `(0.55, 0.65, 0.85)` (unit length; the sun and sky colours of the
-/// synthetic world, close to daylight's). It turns by under 2° for a sun from 1× to 6× the
+/// shadow: `ln(sun + sky) − ln(sky)` for [`SUN_COLOUR`] 2.5 times the strength of
+/// [`SKY_COLOUR`] (unit length; close to daylight's). It turns by under 2° for a sun from 1× to 6× the
 /// sky, so one direction serves every sun elevation.
 pub const SHADOW_DIRECTION: [f32; 3] = [0.6495, 0.5861, 0.4844];
 
@@ -79,12 +83,9 @@ mod tests {
         v.max(0.0).powf(1.0 / 2.2)
     }
 
-    /// A surface of albedo `a` lit by a sun of strength `s` (0: in shadow) and the sky, with
-    /// the sun and sky colours `SHADOW_DIRECTION` was derived from.
+    /// A surface of albedo `a` lit by a sun of strength `s` (0: in shadow) and the sky.
     fn lit(a: [f32; 3], s: f32) -> [f32; 3] {
-        let sun = [1.0f32, 0.96, 0.88];
-        let sky = [0.55f32, 0.65, 0.85];
-        [0, 1, 2].map(|k| display(0.3 * a[k] * (s * sun[k] + sky[k])))
+        [0, 1, 2].map(|k| display(0.3 * a[k] * (s * SUN_COLOUR[k] + SKY_COLOUR[k])))
     }
 
     fn invariant_of(px: [f32; 3]) -> [f32; 2] {
@@ -123,6 +124,16 @@ mod tests {
             b[k] *= 1.6;
             let (x, y) = (invariant_of(lit(a, s)), invariant_of(lit(b, s)));
             prop_assert!((x[0] - y[0]).hypot(x[1] - y[1]) > 0.2);
+        }
+    }
+
+    /// The constant is the normalised `ln(2.5 sun + sky) − ln(sky)`.
+    #[test]
+    fn the_shadow_direction_follows_from_the_light_colours() {
+        let d = [0, 1, 2].map(|k| (2.5 * SUN_COLOUR[k] + SKY_COLOUR[k]).ln() - SKY_COLOUR[k].ln());
+        let n = dot(d, d).sqrt();
+        for k in 0..3 {
+            assert!((d[k] / n - SHADOW_DIRECTION[k]).abs() < 1e-4, "{d:?}");
         }
     }
 

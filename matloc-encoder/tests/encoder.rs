@@ -283,7 +283,7 @@ fn a_checkpoint_without_the_standardisation_field_loads_without_it() {
 /// `img` with its left half in a cast shadow: each channel's linear light keeps only the sky's
 /// share of sun (2.5× the sky) + sky, the light model the shadow-invariant input assumes.
 fn left_half_shadowed(img: &Image<f32>) -> Image<f32> {
-    let (sun, sky) = ([1.0f32, 0.96, 0.88], [0.55f32, 0.65, 0.85]);
+    use matloc_core::shadow::{SKY_COLOUR as sky, SUN_COLOUR as sun};
     let mut out = img.clone();
     let w = img.width();
     for (i, px) in out.data_mut().chunks_exact_mut(3).enumerate() {
