@@ -7,7 +7,7 @@ use burn::optim::{AdamConfig, GradientsParams};
 use burn::prelude::*;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
 use matloc_core::backend::seeded_module;
-use matloc_core::pose::{camera_center, viewing_direction};
+use matloc_core::pose::{camera_center, interpolate, viewing_direction};
 use matloc_core::shadow::{shadow_invariant, standardise};
 use matloc_core::{Camera, Image, Pose};
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
@@ -669,7 +669,7 @@ impl PlaceModel {
         let (s1, s2) = (cos[j1], cos[j2]);
         // Softmax weight of the neighbour: ½ for equal similarities, → 0 as it falls behind.
         let w2 = 1.0 / (1.0 + ((s1 - s2) / self.member_blend).exp());
-        Some(blend_poses(&p1, &self.member_poses[j2], f64::from(w2)))
+        Some(interpolate(&p1, &self.member_poses[j2], f64::from(w2)))
     }
 
     /// Raw network outputs for a batch of images: `[B, groups]` cosines (ArcFace) or `[B, 7]`
@@ -928,20 +928,6 @@ impl PlacePredictor for PlaceModel {
     }
 }
 
-/// The pose `w` of the way from `a` to `b`: camera centres interpolated linearly, rotations
-/// by slerp (`a` when they are opposite).
-fn blend_poses(a: &Pose, b: &Pose, w: f64) -> Pose {
-    let c = camera_center(a).coords.lerp(&camera_center(b).coords, w);
-    let r = a
-        .rotation
-        .try_slerp(&b.rotation, w, 1e-9)
-        .unwrap_or(a.rotation);
-    // Slerp of nearly equal rotations divides by a small sine: renormalise so the centre
-    // survives the round trip through `t = −R c`.
-    let r = UnitQuaternion::new_normalize(r.into_inner());
-    Pose::from_parts(Translation3::from(-(r * c)), r)
-}
-
 /// Mean of the surface points a pose sees, from its z-depth map (every `stride`-th pixel):
 /// the "view point" [`PoseGroups::build`] measures viewing distances to.
 pub fn view_point_from_depth(
@@ -1022,34 +1008,4 @@ pub fn view_overlap(
         })
         .count();
     seen as f64 / pts.len() as f64
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use proptest::prelude::*;
-
-    fn pose(yaw: f64, pitch: f64, c: [f64; 3]) -> Pose {
-        let r = UnitQuaternion::from_euler_angles(pitch, 0.0, yaw);
-        Pose::from_parts(Translation3::from(-(r * Vector3::from(c))), r)
-    }
-
-    proptest! {
-        #[test]
-        fn blend_interpolates_centres_and_rotations(
-            y1 in -3.0f64..3.0, y2 in -0.5f64..0.5, p in -1.0f64..1.0,
-            c1 in proptest::array::uniform3(-50.0f64..50.0),
-            c2 in proptest::array::uniform3(-50.0f64..50.0),
-            w in 0.0f64..1.0,
-        ) {
-            let (a, b) = (pose(y1, p, c1), pose(y1 + y2, p, c2));
-            let m = blend_poses(&a, &b, w);
-            let expect = Vector3::from(c1).lerp(&Vector3::from(c2), w);
-            prop_assert!((camera_center(&m).coords - expect).norm() < 1e-9);
-            let (ta, tb) = (m.rotation.angle_to(&a.rotation), m.rotation.angle_to(&b.rotation));
-            let total = a.rotation.angle_to(&b.rotation);
-            prop_assert!((ta - w * total).abs() < 1e-9 && (tb - (1.0 - w) * total).abs() < 1e-9);
-            prop_assert!((blend_poses(&a, &b, 0.0).translation.vector - a.translation.vector).norm() < 1e-9);
-        }
-    }
 }

@@ -172,14 +172,9 @@ fn nearest_other<'a>(
         .map(|(_, p)| p)
 }
 
-/// The camera halfway between two poses: centres averaged, attitudes slerped. The slerped
-/// quaternion is renormalised: for nearby attitudes nalgebra's slerp leaves its norm off by
-/// ~1e-10, which moved a centre 150 m out by a few nanometres through the final inverse.
+/// The camera halfway between two poses: centres averaged, attitudes slerped.
 fn halfway(a: &Pose, b: &Pose) -> Pose {
-    let mut world_from_cam = a.inverse().lerp_slerp(&b.inverse(), 0.5);
-    world_from_cam.rotation =
-        nalgebra::UnitQuaternion::new_normalize(world_from_cam.rotation.into_inner());
-    world_from_cam.inverse()
+    matloc_core::pose::interpolate(a, b, 0.5)
 }
 
 /// Block `b`'s NeRF rendered in colour at `pose`.
