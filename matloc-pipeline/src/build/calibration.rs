@@ -263,7 +263,7 @@ mod tests {
     fn halfway_between_nearby_attitudes_keeps_the_midpoint() {
         let pa = view(
             0,
-            [0.0, 48.72353728411438, 107.668005272670979],
+            [0.0, 48.72353728411438, 107.66800527267098],
             [2.0236833864540973, 0.0, 1.9670420981530095],
         )
         .cam_from_world;
