@@ -2,7 +2,9 @@
 //!
 //! - **rgb-keypoints** (FVLocNeRF-style): render RGB and depth at the coarse pose, match
 //!   ORB-like keypoints between the render and the query, lift the rendered keypoints with the
-//!   rendered depth, solve PnP in LO-RANSAC.
+//!   rendered depth, solve PnP in LO-RANSAC; the consensus is accepted only when chance could
+//!   not have produced it (a-contrario NFA, as the structure localizer), which the paper's
+//!   version did not ask.
 //! - **iNeRF**: minimise the photometric error of rendered vs query pixels over the pose by
 //!   Adam on se(3), 300 iterations, pixels resampled each iteration (half around keypoints —
 //!   iNeRF's interest-region sampling — half uniform).
@@ -22,6 +24,7 @@ use matloc_core::{Camera, Image, Pose};
 use matloc_keypoints::{
     GrayImage, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
 };
+use matloc_pnp::significance::{chance_inlier_probability, log10_nfa};
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
 use matloc_render::{NerfModel, PixelSet, RenderRequest, RenderedView, render_view};
 use nalgebra::{Isometry3, Point2, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
@@ -43,6 +46,8 @@ pub struct BaselineOutcome {
     pub matches: usize,
     /// PnP inliers (keypoints only).
     pub inliers: usize,
+    /// Base-10 NFA of the PnP consensus (keypoints only; `None` without one).
+    pub log10_nfa: Option<f64>,
 }
 
 fn check_query(camera: &Camera, query: &Image<f32>) -> Result<(), PipelineError> {
@@ -57,7 +62,7 @@ fn check_query(camera: &Camera, query: &Image<f32>) -> Result<(), PipelineError>
 }
 
 /// Options of the rendered-RGB + keypoints baseline.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct KeypointBaselineOptions {
     /// Detector settings (same for render and query).
@@ -66,6 +71,39 @@ pub struct KeypointBaselineOptions {
     pub matching: MatchConfig,
     /// PnP settings.
     pub pnp: PnpOptions,
+    /// Refuse a consensus whose base-10 number of false alarms is above this
+    /// ([`matloc_pnp::significance`]); `None` accepts any consensus PnP finds (the paper's
+    /// baseline). Default −2, the structure localizer's.
+    pub max_log10_nfa: Option<f64>,
+}
+
+impl Default for KeypointBaselineOptions {
+    fn default() -> Self {
+        KeypointBaselineOptions {
+            keypoints: KeypointConfig::default(),
+            matching: MatchConfig::default(),
+            pnp: PnpOptions::default(),
+            max_log10_nfa: Some(-2.0),
+        }
+    }
+}
+
+/// Base-10 NFA of `inliers` of `matches` for `solver` on `camera`: a wrong match is an inlier
+/// when it falls within the RANSAC threshold of the projection, anywhere in the image.
+pub(crate) fn consensus_log10_nfa(
+    solver: &LoRansacPnp,
+    options: &PnpOptions,
+    camera: &Camera,
+    matches: usize,
+    inliers: usize,
+) -> f64 {
+    let p_chance = chance_inlier_probability(
+        options.ransac.max_error_px,
+        camera.width,
+        camera.height,
+        None,
+    );
+    log10_nfa(matches, inliers, solver.minimal_sample(), p_chance)
 }
 
 /// `model`'s view at `cam_from_world`, every pixel of `camera`, with its colour image.
@@ -144,9 +182,14 @@ pub fn rgb_keypoints(
     let input = PnpInput::new(camera, &pixels, &points).with_scores(&scores);
     let result = solver.solve(&input, rng);
     stages.push(("pnp".to_string(), t.elapsed().as_secs_f64()));
-    let (pose, inliers) = match result {
-        Ok(r) => (Some(r.cam_from_world), r.stats.num_inliers),
-        Err(_) => (None, 0),
+    let (pose, inliers, nfa) = match result {
+        Ok(r) => {
+            let n = r.stats.num_inliers;
+            let nfa = consensus_log10_nfa(&solver, &options.pnp, camera, pixels.len(), n);
+            let significant = options.max_log10_nfa.is_none_or(|max| nfa <= max);
+            (significant.then_some(r.cam_from_world), n, Some(nfa))
+        }
+        Err(_) => (None, 0, None),
     };
     Ok(BaselineOutcome {
         cam_from_world: pose,
@@ -154,6 +197,7 @@ pub fn rgb_keypoints(
         stage_seconds: stages,
         matches: pixels.len(),
         inliers,
+        log10_nfa: nfa,
     })
 }
 
@@ -372,6 +416,7 @@ pub fn inerf(
         stage_seconds: vec![("optimise".to_string(), start.elapsed().as_secs_f64())],
         matches: options.pixels,
         inliers: 0,
+        log10_nfa: None,
     })
 }
 
@@ -387,6 +432,23 @@ mod tests {
         let t = tangent_to_isometry(&xi);
         assert!((t.rotation.angle() - 0.1).abs() < 1e-12);
         assert!((t.translation.vector - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-12);
+    }
+
+    /// The keypoint baseline refuses chance consensus by default; `null` restores the
+    /// paper's accept-any-consensus rule.
+    #[test]
+    fn keypoint_significance_defaults_to_the_structure_rule_and_can_be_switched_off() {
+        assert_eq!(KeypointBaselineOptions::default().max_log10_nfa, Some(-2.0));
+        let o: KeypointBaselineOptions =
+            serde_json::from_str(r#"{"max_log10_nfa": null}"#).unwrap();
+        assert_eq!(o.max_log10_nfa, None);
+        let o: KeypointBaselineOptions = serde_json::from_str("{}").unwrap();
+        assert_eq!(o, KeypointBaselineOptions::default());
+        // 6 of 200 matches within 3 px on a 320 × 240 image could be chance; 20 could not.
+        let (solver, pnp) = (LoRansacPnp::default(), PnpOptions::default());
+        let camera = Camera::pinhole(320, 240, 300.0, 300.0, 160.0, 120.0).unwrap();
+        assert!(consensus_log10_nfa(&solver, &pnp, &camera, 200, 6) > -2.0);
+        assert!(consensus_log10_nfa(&solver, &pnp, &camera, 200, 20) < -2.0);
     }
 
     #[test]

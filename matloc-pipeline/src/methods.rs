@@ -97,8 +97,8 @@ pub struct QueryResult {
     pub cam_from_world: Option<Pose>,
     /// Camera centre in world coordinates, when localized.
     pub camera_center: Option<[f64; 3]>,
-    /// Confidence in the answer: MatLoc's calibrated model, the structure method's 1 − NFA
-    /// (0 when no consensus was found); `null` for the NeRF baselines.
+    /// Confidence in the answer: MatLoc's calibrated model, the structure method's and
+    /// rgb-keypoints' 1 − NFA (0 when no consensus was found); `null` for iNeRF.
     pub confidence: Option<f64>,
     /// PnP inliers (MatLoc, keypoints).
     pub inliers: usize,
@@ -199,6 +199,14 @@ pub fn localize_with(
     };
     let mut stage_seconds = vec![("place".to_string(), place_s)];
     stage_seconds.extend(out.stage_seconds);
+    // rgb-keypoints: 1 − NFA of its consensus, as the structure method's; iNeRF: none.
+    let confidence = (method == Method::RgbKeypoints).then(|| {
+        structure_confidence(
+            out.log10_nfa,
+            out.inliers,
+            options.keypoints.pnp.ransac.min_inliers,
+        )
+    });
     Ok(QueryResult {
         name: name.to_string(),
         method,
@@ -208,7 +216,7 @@ pub fn localize_with(
             .as_ref()
             .map(|p| camera_center(p).coords.into()),
         cam_from_world: out.cam_from_world,
-        confidence: None,
+        confidence,
         inliers: out.inliers,
         iterations: out.iterations,
         hypotheses: vec![HypothesisReport {
@@ -218,12 +226,12 @@ pub fn localize_with(
             coarse_cam_from_world: hyp.cam_from_world,
             matches: out.matches,
             inliers: out.inliers,
-            confidence: 0.0,
+            confidence: confidence.unwrap_or(0.0),
             passes: out.iterations as usize,
             accepted: out.cam_from_world.is_some(),
             failure: None,
             alignment: 0.0,
-            log10_nfa: None,
+            log10_nfa: out.log10_nfa,
         }],
         stage_seconds,
         total_seconds: start.elapsed().as_secs_f64(),

@@ -7,7 +7,7 @@ use matloc_core::{Camera, Image};
 use matloc_keypoints::{
     GrayImage, Keypoint, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
 };
-use matloc_pnp::significance::log10_nfa;
+use matloc_pnp::significance::{chance_inlier_probability, log10_nfa};
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
 use nalgebra::{Point2, Point3, Vector2, Vector3};
 use rand::RngCore;
@@ -356,9 +356,12 @@ fn solve_matches(
     time.pnp += t.elapsed().as_secs_f64();
     let (pose, inliers) = match solved {
         Ok(r) => {
-            let tau = options.pnp.ransac.max_error_px;
-            let area = f64::from(camera.width) * f64::from(camera.height);
-            let p_chance = (std::f64::consts::PI * tau * tau / area.max(1.0)).min(1.0);
+            let p_chance = chance_inlier_probability(
+                options.pnp.ransac.max_error_px,
+                camera.width,
+                camera.height,
+                None,
+            );
             // Bonferroni over the starts: start `index` is the (index + 1)-th test.
             let nfa = log10_nfa(
                 matches.pixels.len(),
