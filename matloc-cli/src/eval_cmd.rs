@@ -206,16 +206,10 @@ fn differences(runs: &[MethodRun], map: &LoadedMap, method_options: &MethodOptio
                 },
                 options.max_accept_rotation_deg
             ),
-            Method::RgbKeypoints => match method_options.keypoints.max_log10_nfa {
-                Some(max) => format!(
-                    "the top-1 hypothesis only (the paper's comparison); refuses unless PnP finds a consensus of ≥ {} inliers with NFA ≤ 10^{max}; confidence 1 − NFA (not fitted)",
-                    method_options.keypoints.pnp.ransac.min_inliers
-                ),
-                None => format!(
-                    "the top-1 hypothesis only (the paper's comparison); refuses only when PnP finds no consensus of {} inliers; confidence 1 − NFA (not fitted)",
-                    method_options.keypoints.pnp.ransac.min_inliers
-                ),
-            },
+            Method::RgbKeypoints => format!(
+                "the top-1 hypothesis only (the paper's comparison); refuses only when PnP finds no consensus of {} inliers; confidence 1 − NFA of that consensus (not fitted)",
+                method_options.keypoints.pnp.ransac.min_inliers
+            ),
             Method::Inerf | Method::CurriculumInerf => {
                 "the top-1 hypothesis only; never refuses; no confidence".to_string()
             }

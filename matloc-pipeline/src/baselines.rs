@@ -2,9 +2,8 @@
 //!
 //! - **rgb-keypoints** (FVLocNeRF-style): render RGB and depth at the coarse pose, match
 //!   ORB-like keypoints between the render and the query, lift the rendered keypoints with the
-//!   rendered depth, solve PnP in LO-RANSAC; the consensus is accepted only when chance could
-//!   not have produced it (a-contrario NFA, as the structure localizer), which the paper's
-//!   version did not ask.
+//!   rendered depth, solve PnP in LO-RANSAC; any consensus PnP finds is returned, with the
+//!   a-contrario NFA of that consensus as its confidence (as the structure localizer's).
 //! - **iNeRF**: minimise the photometric error of rendered vs query pixels over the pose by
 //!   Adam on se(3), 300 iterations, pixels resampled each iteration (half around keypoints —
 //!   iNeRF's interest-region sampling — half uniform).
@@ -62,7 +61,7 @@ fn check_query(camera: &Camera, query: &Image<f32>) -> Result<(), PipelineError>
 }
 
 /// Options of the rendered-RGB + keypoints baseline.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct KeypointBaselineOptions {
     /// Detector settings (same for render and query).
@@ -71,21 +70,6 @@ pub struct KeypointBaselineOptions {
     pub matching: MatchConfig,
     /// PnP settings.
     pub pnp: PnpOptions,
-    /// Refuse a consensus whose base-10 number of false alarms is above this
-    /// ([`matloc_pnp::significance`]); `None` accepts any consensus PnP finds (the paper's
-    /// baseline). Default −2, the structure localizer's.
-    pub max_log10_nfa: Option<f64>,
-}
-
-impl Default for KeypointBaselineOptions {
-    fn default() -> Self {
-        KeypointBaselineOptions {
-            keypoints: KeypointConfig::default(),
-            matching: MatchConfig::default(),
-            pnp: PnpOptions::default(),
-            max_log10_nfa: Some(-2.0),
-        }
-    }
 }
 
 /// Base-10 NFA of `inliers` of `matches` for `solver` on `camera`: a wrong match is an inlier
@@ -186,8 +170,7 @@ pub fn rgb_keypoints(
         Ok(r) => {
             let n = r.stats.num_inliers;
             let nfa = consensus_log10_nfa(&solver, &options.pnp, camera, pixels.len(), n);
-            let significant = options.max_log10_nfa.is_none_or(|max| nfa <= max);
-            (significant.then_some(r.cam_from_world), n, Some(nfa))
+            (Some(r.cam_from_world), n, Some(nfa))
         }
         Err(_) => (None, 0, None),
     };
@@ -434,16 +417,9 @@ mod tests {
         assert!((t.translation.vector - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-12);
     }
 
-    /// The keypoint baseline refuses chance consensus by default; `null` restores the
-    /// paper's accept-any-consensus rule.
+    /// The keypoint baseline's confidence tells a chance consensus from a real one.
     #[test]
-    fn keypoint_significance_defaults_to_the_structure_rule_and_can_be_switched_off() {
-        assert_eq!(KeypointBaselineOptions::default().max_log10_nfa, Some(-2.0));
-        let o: KeypointBaselineOptions =
-            serde_json::from_str(r#"{"max_log10_nfa": null}"#).unwrap();
-        assert_eq!(o.max_log10_nfa, None);
-        let o: KeypointBaselineOptions = serde_json::from_str("{}").unwrap();
-        assert_eq!(o, KeypointBaselineOptions::default());
+    fn keypoint_consensus_significance_grows_with_the_inliers() {
         // 6 of 200 matches within 3 px on a 320 × 240 image could be chance; 20 could not.
         let (solver, pnp) = (LoRansacPnp::default(), PnpOptions::default());
         let camera = Camera::pinhole(320, 240, 300.0, 300.0, 160.0, 120.0).unwrap();

@@ -355,7 +355,7 @@ fn eval_reports_confidence_reliability_and_what_differs_between_rows() {
         "| matloc | 10 |",
         "## What differs between the rows",
         "- `structure` (10 queries): the place predictor's top 30 hypotheses (MatLoc gets the first 3)",
-        "- `rgb-keypoints` (10 queries): the top-1 hypothesis only (the paper's comparison); refuses unless PnP finds a consensus of ≥ 6 inliers with NFA ≤ 10^-2",
+        "- `rgb-keypoints` (10 queries): the top-1 hypothesis only (the paper's comparison); refuses only when PnP finds no consensus of 6 inliers; confidence 1 − NFA",
         "(fitted at build time on held-out training views",
     ] {
         assert!(
