@@ -188,11 +188,12 @@ fn differences(runs: &[MethodRun], map: &LoadedMap, method_options: &MethodOptio
     for r in runs {
         let text = match r.method {
             Method::Structure => format!(
-                "the place predictor's top {} hypotheses (MatLoc gets the first {}), tried in order; refuses unless a pose has ≥ {} PnP inliers and NFA ≤ 10^{} (false alarms counted over the starts tried); confidence 1 − NFA (not fitted)",
+                "the place predictor's top {} hypotheses (MatLoc gets the first {}), tried in order; refuses unless a pose has ≥ {} PnP inliers, NFA ≤ 10^{} (false alarms counted over the starts tried) and a training image looking within {}° of its direction; confidence 1 − NFA (not fitted)",
                 structure.hypotheses_to_try(options.top_k),
                 options.top_k.max(1),
                 structure.min_inliers,
-                structure.max_log10_nfa
+                structure.max_log10_nfa,
+                structure.max_view_angle_deg
             ),
             Method::Matloc => format!(
                 "the place predictor's top {} hypotheses, tried in order; refuses below a calibrated confidence of {:.2} (fitted at build time on {}) or a correction beyond {:.1}°",

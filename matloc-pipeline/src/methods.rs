@@ -301,8 +301,13 @@ fn localize_structure(
                         structure_confidence(last.log10_nfa, last.inliers, options.min_inliers);
                     report.accepted =
                         r.cam_from_world.is_some() && tried.iter().any(|s| s.accepted);
-                    report.failure = (last.images == 0)
-                        .then(|| "no training image looks the way this hypothesis does".into());
+                    report.failure = if last.images == 0 {
+                        Some("no training image looks the way this hypothesis does".into())
+                    } else if tried.iter().any(|s| s.unseen) {
+                        Some("no training image looks the way the solved pose does".into())
+                    } else {
+                        None
+                    };
                     report.log10_nfa = last.log10_nfa;
                     Some(report)
                 }

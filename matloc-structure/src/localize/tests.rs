@@ -268,6 +268,40 @@ fn the_false_alarms_of_a_later_start_count_the_starts_before_it() {
     );
 }
 
+/// A pose no training image looks at (within the view angle) is not accepted, however many
+/// inliers it has: the query tilted 25° off the nadir training views localizes with the
+/// default 37°, and is refused, marked unseen, when the angle is 20°.
+#[test]
+fn a_pose_no_training_image_looks_at_is_not_accepted() {
+    let map = plane_structure();
+    let camera = camera();
+    let nadir = pose_above(3.0, -2.0, 0.1);
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 25f64.to_radians());
+    let gt = Pose::from_parts(Translation3::identity(), tilt) * nadir;
+    let query = render(&camera, &gt, ground);
+    let run = |max_view_angle_deg: f64| {
+        let options = StructureOptions {
+            max_view_angle_deg,
+            ..StructureOptions::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        localize(&map, &query, &camera, &[nadir], &options, &mut rng).unwrap()
+    };
+    let seen = run(37.0);
+    let pose = seen.cam_from_world.expect("localized at 37°");
+    assert!(translation_error_m(&pose, &gt) < 0.5, "{:?}", seen.starts);
+    assert!(seen.starts.iter().all(|s| !s.unseen));
+    // At 20° the start (nadir) still finds its images, the solved pose none.
+    let unseen = run(20.0);
+    assert!(unseen.cam_from_world.is_none(), "{:?}", unseen.starts);
+    assert!(
+        unseen.starts[0].images > 0 && unseen.starts[0].unseen,
+        "{:?}",
+        unseen.starts
+    );
+    assert!(!unseen.starts[0].accepted);
+}
+
 #[test]
 fn a_query_of_the_wrong_size_is_an_error() {
     let map = StructureMap::default();
