@@ -23,7 +23,6 @@ use matloc_core::{Camera, Image, Pose};
 use matloc_keypoints::{
     GrayImage, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
 };
-use matloc_pnp::significance::{chance_inlier_probability, log10_nfa};
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
 use matloc_render::{NerfModel, PixelSet, RenderRequest, RenderedView, render_view};
 use nalgebra::{Isometry3, Point2, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
@@ -70,24 +69,6 @@ pub struct KeypointBaselineOptions {
     pub matching: MatchConfig,
     /// PnP settings.
     pub pnp: PnpOptions,
-}
-
-/// Base-10 NFA of `inliers` of `matches` for `solver` on `camera`: a wrong match is an inlier
-/// when it falls within the RANSAC threshold of the projection, anywhere in the image.
-pub(crate) fn consensus_log10_nfa(
-    solver: &LoRansacPnp,
-    options: &PnpOptions,
-    camera: &Camera,
-    matches: usize,
-    inliers: usize,
-) -> f64 {
-    let p_chance = chance_inlier_probability(
-        options.ransac.max_error_px,
-        camera.width,
-        camera.height,
-        None,
-    );
-    log10_nfa(matches, inliers, solver.minimal_sample(), p_chance)
 }
 
 /// `model`'s view at `cam_from_world`, every pixel of `camera`, with its colour image.
@@ -169,7 +150,7 @@ pub fn rgb_keypoints(
     let (pose, inliers, nfa) = match result {
         Ok(r) => {
             let n = r.stats.num_inliers;
-            let nfa = consensus_log10_nfa(&solver, &options.pnp, camera, pixels.len(), n);
+            let nfa = solver.consensus_log10_nfa(camera, pixels.len(), n);
             (Some(r.cam_from_world), n, Some(nfa))
         }
         Err(_) => (None, 0, None),
@@ -421,10 +402,10 @@ mod tests {
     #[test]
     fn keypoint_consensus_significance_grows_with_the_inliers() {
         // 6 of 200 matches within 3 px on a 320 × 240 image could be chance; 20 could not.
-        let (solver, pnp) = (LoRansacPnp::default(), PnpOptions::default());
+        let solver = LoRansacPnp::default();
         let camera = Camera::pinhole(320, 240, 300.0, 300.0, 160.0, 120.0).unwrap();
-        assert!(consensus_log10_nfa(&solver, &pnp, &camera, 200, 6) > -2.0);
-        assert!(consensus_log10_nfa(&solver, &pnp, &camera, 200, 20) < -2.0);
+        assert!(solver.consensus_log10_nfa(&camera, 200, 6) > -2.0);
+        assert!(solver.consensus_log10_nfa(&camera, 200, 20) < -2.0);
     }
 
     #[test]

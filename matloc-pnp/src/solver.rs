@@ -153,6 +153,19 @@ impl LoRansacPnp {
     pub fn new(options: PnpOptions) -> Self {
         Self { options }
     }
+
+    /// Base-10 NFA of a consensus of `inliers` among `matches` in `camera`'s image: a chance
+    /// match is an inlier when it lands within this solver's RANSAC threshold of its
+    /// projection, anywhere in the image ([`crate::significance`]).
+    pub fn consensus_log10_nfa(&self, camera: &Camera, matches: usize, inliers: usize) -> f64 {
+        let p_chance = crate::significance::chance_inlier_probability(
+            self.options.ransac.max_error_px,
+            camera.width,
+            camera.height,
+            None,
+        );
+        crate::significance::log10_nfa(matches, inliers, self.minimal_sample(), p_chance)
+    }
 }
 
 /// Correspondences after validation and undistortion (usable matches only).

@@ -7,7 +7,6 @@ use matloc_core::{Camera, Image};
 use matloc_keypoints::{
     GrayImage, Keypoint, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
 };
-use matloc_pnp::significance::{chance_inlier_probability, log10_nfa};
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
 use nalgebra::{Point2, Point3, Vector2, Vector3};
 use rand::RngCore;
@@ -369,19 +368,9 @@ fn solve_matches(
     time.pnp += t.elapsed().as_secs_f64();
     let (pose, inliers) = match solved {
         Ok(r) => {
-            let p_chance = chance_inlier_probability(
-                options.pnp.ransac.max_error_px,
-                camera.width,
-                camera.height,
-                None,
-            );
             // Bonferroni over the starts: start `index` is the (index + 1)-th test.
-            let nfa = log10_nfa(
-                matches.pixels.len(),
-                r.stats.num_inliers,
-                solver.minimal_sample(),
-                p_chance,
-            ) + ((index + 1) as f64).log10();
+            let nfa = solver.consensus_log10_nfa(camera, matches.pixels.len(), r.stats.num_inliers)
+                + ((index + 1) as f64).log10();
             report.inliers = r.stats.num_inliers;
             report.log10_nfa = Some(nfa);
             report.accepted =
