@@ -218,7 +218,8 @@ pub fn run(cmd: &MapCommand, quiet: bool) -> Result<()> {
         MapCommand::Config { .. } => {
             outln!(
                 "{}",
-                serde_json::to_string_pretty(&MapConfig::default()).context("map config")?
+                serde_json::to_string_pretty(&MapConfig::documented_default())
+                    .context("map config")?
             )
         }
     }

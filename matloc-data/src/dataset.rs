@@ -69,6 +69,10 @@ pub struct SceneMetadata {
     /// key of `transforms.json`, and so does [`crate::nerfstudio::write_nerfstudio`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub applied_transform: Option<[[f64; 4]; 3]>,
+    /// Unit direction towards the sun in this world frame when the images were taken (the
+    /// synthetic world writes it; a map's shadow lifting reads it, see `matloc_surface::sunlight`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sun_direction: Option<[f64; 3]>,
     /// The Mega-NeRF normalisation that [`crate::meganerf`] undid when reading.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mega_nerf: Option<MegaNerfCoordinates>,

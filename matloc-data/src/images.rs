@@ -421,6 +421,25 @@ pub fn load_frame_depth(
 /// Writes a three-channel `[0, 1]` image as an 8-bit RGB PNG, atomically (values are clamped
 /// and rounded).
 pub fn write_png_rgb(img: &Image<f32>, path: &Path) -> Result<(), ImageLoadError> {
+    let buf = rgb8_buffer(img, path)?;
+    write_encoded(path, |w| buf.write_with_encoder(PngEncoder::new(w)))
+}
+
+/// An RGB image (`[0, 1]`) as the bytes of an 8-bit PNG file, for writers that place files
+/// themselves (`path` only names the file in errors).
+pub fn encode_png_rgb(img: &Image<f32>, path: &Path) -> Result<Vec<u8>, ImageLoadError> {
+    let buf = rgb8_buffer(img, path)?;
+    let mut out = Vec::new();
+    buf.write_with_encoder(PngEncoder::new(&mut out))
+        .map_err(|e| codec_error(path, e))?;
+    Ok(out)
+}
+
+/// The 8-bit buffer of a 3-channel image; another channel count is an error naming `path`.
+fn rgb8_buffer(
+    img: &Image<f32>,
+    path: &Path,
+) -> Result<ImageBuffer<Rgb<u8>, Vec<u8>>, ImageLoadError> {
     if img.channels() != 3 {
         return Err(ImageLoadError::Channels {
             path: path.to_path_buf(),
@@ -433,10 +452,10 @@ pub fn write_png_rgb(img: &Image<f32>, path: &Path) -> Result<(), ImageLoadError
         .iter()
         .map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
         .collect();
-    let buf: ImageBuffer<Rgb<u8>, Vec<u8>> =
+    Ok(
         ImageBuffer::from_raw(img.width() as u32, img.height() as u32, bytes)
-            .expect("length checked by Image");
-    write_encoded(path, |w| buf.write_with_encoder(PngEncoder::new(w)))
+            .expect("length checked by Image"),
+    )
 }
 
 /// Encodes into a temporary file and renames it over `path`; an encoder error leaves nothing.

@@ -5,7 +5,7 @@ use matloc_encoder::{EncoderTrainConfig, HeadPhaseConfig};
 use matloc_partition::{PoseAwareConfig, SampleConfig};
 use matloc_place::{GroupConfig, PlaceModel, TrainConfig};
 use matloc_select::GreedySearch;
-use matloc_surface::SurfaceConfig;
+use matloc_surface::{SunlightConfig, SurfaceConfig};
 use serde::{Deserialize, Serialize};
 
 use crate::gt::{PerturbKind, Perturbation};
@@ -38,12 +38,33 @@ pub struct MapConfig {
     pub calibration: CalibrationConfig,
     /// Triangulated keypoints of the training images (the structure localizer).
     pub structure: StructureStageConfig,
+    /// Lifting the cast shadows of the map's sun out of the training images before the NeRFs
+    /// are fitted (off by default; left out of the stored config while it is the default, so
+    /// maps from before it resume unchanged).
+    #[serde(skip_serializing_if = "SunlightConfig::is_default")]
+    pub sunlight: SunlightConfig,
     /// Localizer settings stored with the map (the confidence model is replaced by the
     /// calibrated one when the map is loaded).
     pub localize: LocalizeOptions,
 }
 
 impl MapConfig {
+    /// The default config as JSON with every section, also those a stored config leaves out
+    /// while they are at their default (`sunlight`): what `matloc map config --print-default`
+    /// shows.
+    pub fn documented_default() -> serde_json::Value {
+        let mut v = serde_json::to_value(MapConfig::default())
+            .expect("the default config serialises to JSON");
+        if let Some(o) = v.as_object_mut() {
+            o.insert(
+                "sunlight".into(),
+                serde_json::to_value(SunlightConfig::default())
+                    .expect("the sunlight config serialises to JSON"),
+            );
+        }
+        v
+    }
+
     /// The full configuration a partial one (a user's file: only the keys they change) stands
     /// for, as JSON: each key it gives replaces the default's, objects key by key, so a
     /// section keeps the map's defaults for what it leaves out — `{"encoder": {"train":
@@ -52,8 +73,7 @@ impl MapConfig {
     /// enum variant, or a typo, which deserialising then reports) or another `kind` replaces
     /// the default's object whole. Deserialise the result (`serde_json::from_value`).
     pub fn overlay_on_default(partial: serde_json::Value) -> serde_json::Value {
-        let mut full = serde_json::to_value(MapConfig::default())
-            .expect("the default config serialises to JSON");
+        let mut full = MapConfig::documented_default();
         overlay(&mut full, partial);
         full
     }
@@ -579,5 +599,27 @@ mod tests {
         let d = MapConfig::default();
         let text = serde_json::to_string_pretty(&d).unwrap();
         assert_eq!(serde_json::from_str::<MapConfig>(&text).unwrap(), d);
+        // The printed default shows the sunlight section and reads back as the default.
+        let shown = MapConfig::documented_default();
+        assert!(shown.get("sunlight").is_some());
+        assert_eq!(serde_json::from_value::<MapConfig>(shown).unwrap(), d);
+    }
+
+    #[test]
+    fn sunlight_is_stored_only_when_set() {
+        let d = serde_json::to_value(MapConfig::default()).unwrap();
+        assert!(
+            d.get("sunlight").is_none(),
+            "maps from before it resume unchanged"
+        );
+        let c: MapConfig = serde_json::from_value(MapConfig::overlay_on_default(
+            json!({"sunlight": {"enabled": true}}),
+        ))
+        .unwrap();
+        assert!(c.sunlight.enabled);
+        assert_eq!(c.sunlight.neighbours, SunlightConfig::default().neighbours);
+        // The other sections keep the map's defaults (not their types').
+        assert_eq!(c.encoder, MapConfig::default().encoder);
+        assert!(serde_json::to_value(&c).unwrap().get("sunlight").is_some());
     }
 }

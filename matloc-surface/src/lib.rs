@@ -11,6 +11,8 @@
 //! - [`source`] has [`plan`] (which source, without reading anything) and [`FrameSurfaces`];
 //!   [`kind`] names the sources ([`SurfaceKind`]);
 //! - [`densify`] and [`triangulate`] are the two algorithms;
+//! - [`sunlight`] finds the cast shadows of the map's sun in the training images and lifts them
+//!   ([`SunlightConfig`]);
 //! - [`error`] holds [`SurfaceError`].
 
 pub mod config;
@@ -18,10 +20,12 @@ pub mod densify;
 pub mod error;
 pub mod kind;
 pub mod source;
+pub mod sunlight;
 pub mod triangulate;
 
 pub use config::{SurfaceChoice, SurfaceConfig, TriangulateConfig};
 pub use error::SurfaceError;
 pub use kind::SurfaceKind;
 pub use source::{FrameSurfaces, SurfacePlan, plan};
+pub use sunlight::SunlightConfig;
 pub use triangulate::triangulate;

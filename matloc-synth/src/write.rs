@@ -37,6 +37,7 @@ pub(crate) fn metadata(config: &SynthConfig, world: &World) -> SceneMetadata {
         generator: Some("matloc-synth".into()),
         preset: Some(config.preset.clone()),
         seed: Some(config.seed),
+        sun_direction: Some([world.sun.x, world.sun.y, world.sun.z]),
         ..SceneMetadata::default()
     }
 }

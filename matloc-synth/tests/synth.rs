@@ -31,6 +31,14 @@ fn synth_dataset_reads_back_with_identical_poses_and_depth() {
     assert_eq!(read.metadata.seed, Some(3));
     assert_eq!(read.metadata.preset.as_deref(), Some("tiny"));
     assert_eq!(read.metadata.up, Some([0.0, 0.0, 1.0]));
+    // The sun, towards it: the world's default azimuth 150° (clockwise from north, +y), 50° up.
+    let sun = read.metadata.sun_direction.expect("sun written");
+    let (az, el) = (150f64.to_radians(), 50f64.to_radians());
+    let expected = [az.sin() * el.cos(), az.cos() * el.cos(), el.sin()];
+    assert!(
+        sun.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12),
+        "{sun:?}"
+    );
     assert_eq!(read.split(Split::Test).count(), 4);
 
     let world = World::generate(&cfg.world, cfg.seed).unwrap();

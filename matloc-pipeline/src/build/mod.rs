@@ -21,6 +21,7 @@ pub mod partition;
 pub mod place;
 pub mod select;
 pub mod structure;
+pub mod sunlight;
 
 use std::path::Path;
 
@@ -155,6 +156,7 @@ pub fn plan_map_with(
     }
     let partition = partition::run(&working, &mut map, config, partitioner, progress)?;
     structure::run(&working, &mut map, config, progress)?;
+    sunlight::run(&working, &mut map, config, progress)?;
     Ok(Planned {
         map,
         dataset: working,

@@ -44,7 +44,8 @@ pub fn block_model_config(
     serde_json::from_value(v).map_err(|source| PipelineError::ConfigJson { field, source })
 }
 
-/// Trains the sub-NeRF of each of `blocks` the map does not record as done.
+/// Trains the sub-NeRF of each of `blocks` the map does not record as done (on the lifted
+/// training images when the map has them, [`crate::build::sunlight`]).
 pub fn run(
     dataset: &Dataset,
     partition: &Partition,
@@ -73,6 +74,13 @@ pub fn run(
             pending.push(b);
         }
     }
+    if pending.is_empty() {
+        return Ok(());
+    }
+    // With the sunlight stage done, the NeRFs fit the training images with the sun's shadows
+    // lifted.
+    let lifted = crate::build::sunlight::lifted_dataset(dataset, map)?;
+    let dataset = lifted.as_ref().unwrap_or(dataset);
     let threads = rayon::current_num_threads();
     // No more blocks at once than threads: each gets at least one of its own.
     for group in pending.chunks(config.nerf.parallel_blocks.clamp(1, threads.max(1))) {

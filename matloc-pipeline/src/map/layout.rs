@@ -14,6 +14,15 @@ pub const SURFACE_FILE: &str = "surface.json";
 /// The sparse points the partition's surface came from, when it came from points (PLY).
 pub const SURFACE_POINTS_FILE: &str = "surface_points.ply";
 
+/// The shadow-lifting record: sun, gain and the lifted training images
+/// ([`crate::build::sunlight`]).
+pub const SUNLIGHT_FILE: &str = "sunlight.json";
+
+/// A lifted training image of the map (by its frame index in the working dataset).
+pub fn sunlight_image(frame: usize) -> String {
+    format!("sunlight/frame_{frame:05}.png")
+}
+
 /// The keypoint structure of the training images (`matloc_structure::StructureMap`).
 pub const STRUCTURE_FILE: &str = "structure.safetensors";
 
@@ -146,6 +155,7 @@ pub fn stage_files(stage: &str) -> Vec<String> {
                 .collect(),
             "calibration" => vec![CONFIDENCE_FILE.to_string()],
             "structure" => vec![STRUCTURE_FILE.to_string()],
+            "sunlight" => vec![SUNLIGHT_FILE.to_string()],
             _ => Vec::new(),
         },
         Some((kind, b)) => match (kind, block(b)) {
