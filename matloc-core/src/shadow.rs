@@ -19,6 +19,17 @@ pub const SKY_COLOUR: [f32; 3] = [0.55, 0.65, 0.85];
 /// sky, so one direction serves every sun elevation.
 pub const SHADOW_DIRECTION: [f32; 3] = [0.6495, 0.5861, 0.4844];
 
+/// Display-encoded value → linear light: the 2.2 power the synthetic world and most cameras
+/// use (negative values count as 0).
+pub fn to_linear(v: f32) -> f32 {
+    v.max(0.0).powf(2.2)
+}
+
+/// Linear light → display value in `[0, 1]` (the inverse of [`to_linear`], clipped).
+pub fn to_display(v: f32) -> f32 {
+    v.clamp(0.0, 1.0).powf(1.0 / 2.2)
+}
+
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }

@@ -11,6 +11,7 @@
 //! are lifted instead (a shadow of the map's flight lit by the sun).
 
 use matloc_core::Image;
+use matloc_core::shadow::{to_display, to_linear};
 use nalgebra::{Point2, Vector3};
 
 use crate::{ENCODER_STRIDE, EncoderSample, SampleView};
@@ -152,15 +153,6 @@ impl JitterConfig {
         }
         Ok(())
     }
-}
-
-/// Display-encoded value → linear light (the sRGB-like 2.2 power).
-fn to_linear(v: f32) -> f32 {
-    v.max(0.0).powf(2.2)
-}
-
-fn to_display(v: f32) -> f32 {
-    v.clamp(0.0, 1.0).powf(1.0 / 2.2)
 }
 
 /// One random augmentation of a training sample's image (RGB, values in `[0, 1]`).

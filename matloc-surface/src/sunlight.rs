@@ -14,6 +14,7 @@
 //! - [`lift_shadows`]: the image with its shadowed pixels multiplied by that gain in linear
 //!   light, the mask's edge softened.
 
+use matloc_core::shadow::{to_display, to_linear};
 use matloc_core::{Camera, Image, Pose};
 use nalgebra::{Point2, Point3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -187,16 +188,6 @@ pub fn shadow_mask(
         }
     }
     mask
-}
-
-/// Display value → linear light (the 2.2 power the synthetic world and most cameras use).
-fn to_linear(v: f32) -> f32 {
-    v.max(0.0).powf(2.2)
-}
-
-/// Linear light → display value in `[0, 1]`.
-fn to_display(v: f32) -> f32 {
-    v.max(0.0).powf(1.0 / 2.2).min(1.0)
 }
 
 /// The mask resampled to `w × h` (bilinear, cell centres).

@@ -148,6 +148,8 @@ fn lift(
             shadow_mask(&views[v], &others, &sun, max_side)
         })
         .collect();
+    // Each image is read twice (the gain needs every mask edge before any image is lifted)
+    // rather than all held at once.
     let load = |pos: usize| -> Result<Image<f32>, PipelineError> {
         Ok(load_frame_image(dataset, frames[pos], 1)?.0)
     };
