@@ -120,8 +120,10 @@ impl DepthView<'_> {
         (d.is_finite() && d > 0.0).then_some(f64::from(d))
     }
 
-    /// Where the world point `p` stands against this view's surface: `Some(true)` behind it,
-    /// `Some(false)` in front of it (the view sees through `p`), `None` outside the view.
+    /// Where the world point `p` stands against this view's surface: `Some(true)` behind it
+    /// by more than 0.3 % of the depth and 5 cm, `Some(false)` in front of it (the view sees
+    /// through `p`), `None` outside the view. (A wider margin loses the shadows of low objects
+    /// seen from 50 m and more: docs/DECISIONS.md.)
     fn behind_surface(&self, p: &Point3<f64>) -> Option<bool> {
         let pc = self.cam_from_world * p;
         if pc.z <= 1e-6 {
@@ -129,7 +131,7 @@ impl DepthView<'_> {
         }
         let q = self.camera.project(&pc.coords)?;
         let d = self.depth_at(q.x, q.y)?;
-        Some(pc.z > d * 1.01 + 0.05)
+        Some(pc.z > d * 1.003 + 0.05)
     }
 }
 
@@ -159,8 +161,8 @@ pub fn grid_size(camera: &Camera, max_side: usize) -> (usize, usize) {
 }
 
 /// Steps of the march towards the sun (growing geometrically from 0.4 % of the depth to about
-/// 20 times it). Finer steps skip fewer thin occluders and corners: with 40 steps growing by
-/// 1.25 the box scene's shadows came out short and the sun search 6.6° low.
+/// 20 times it): coarser steps skip corners and thin occluders, and cut shadows short
+/// (docs/DECISIONS.md, "The sun is estimated from the images").
 const MARCH_STEPS: usize = 90;
 /// Growth of each step over the last.
 const MARCH_GROWTH: f64 = 1.1;
@@ -653,7 +655,7 @@ mod tests {
         // A ground pixel here is 1/8 m, and the shadow's length moves by a pixel per degree
         // of elevation: the search resolves a pixel or two.
         let off = est.direction.angle(&sun).to_degrees();
-        assert!(off < 4.0, "{off:.2}° off: {est:?}");
+        assert!(off < 3.0, "{off:.2}° off: {est:?}");
         // What the lifting uses: the shadows it casts cover those of the true sun.
         let (mut both, mut either) = (0, 0);
         for v in &views {
@@ -665,6 +667,7 @@ mod tests {
             }
         }
         let iou = both as f64 / either as f64;
+        eprintln!("box scene: sun {off:.2}° off, masks IoU {iou:.3}: {est:?}");
         assert!(iou > 0.85, "shadows overlap the true sun's by {iou:.3}");
         // Sun 4× the sky at 40°: lit / shadowed = 1 + 4 sin 40° ≈ 3.6, ln ≈ 1.28.
         assert!(est.contrast > 0.8, "{est:?}");
