@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::SurfaceError;
 
 mod estimate;
-pub use estimate::{SunEstimate, SunView, estimate_sun, sun_edges};
+pub use estimate::{SunEstimate, SunView, estimate_sun, spread, sun_edges, sun_views};
 
 /// Settings of the shadow lifting (the map's `sunlight` section).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -106,7 +106,16 @@ pub struct DepthView<'a> {
     pub depth: &'a Image<f32>,
 }
 
-impl DepthView<'_> {
+impl<'a> DepthView<'a> {
+    /// A dataset frame's view with its depth map.
+    pub fn of(frame: &'a matloc_data::Frame, depth: &'a Image<f32>) -> Self {
+        DepthView {
+            camera: &frame.camera,
+            cam_from_world: &frame.cam_from_world,
+            depth,
+        }
+    }
+
     /// Depth at image pixel coordinates `(x, y)` of the camera.
     fn depth_at(&self, x: f64, y: f64) -> Option<f64> {
         let (dw, dh, _) = self.depth.shape();

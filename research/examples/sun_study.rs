@@ -10,7 +10,7 @@ use matloc_core::Image;
 use matloc_data::images::{downscale_depth, load_frame_image};
 use matloc_data::{Split, read_dataset};
 use matloc_surface::sunlight::{
-    DepthView, SunView, estimate_sun, nearest_views, shadow_mask, sun_edges,
+    DepthView, estimate_sun, nearest_views, shadow_mask, spread, sun_edges, sun_views,
 };
 use matloc_surface::{FrameSurfaces, SurfaceChoice, SurfaceConfig};
 
@@ -35,10 +35,7 @@ fn main() {
         let frames: Vec<_> = train.iter().map(|&i| &dataset.frames[i]).collect();
         let centres: Vec<_> = frames.iter().map(|f| f.center()).collect();
         let neighbours = nearest_views(&centres, 6);
-        let n = frames.len();
-        let picked: Vec<usize> = (0..VIEWS.min(n))
-            .map(|k| (2 * k + 1) * n / (2 * VIEWS.min(n)))
-            .collect();
+        let picked = spread(frames.len(), VIEWS);
         let images: Vec<Image<f32>> = picked
             .iter()
             .map(|&v| load_frame_image(&dataset, frames[v], 1).expect("image").0)
@@ -65,21 +62,9 @@ fn main() {
             let views: Vec<DepthView> = frames
                 .iter()
                 .zip(&depths)
-                .map(|(f, d)| DepthView {
-                    camera: &f.camera,
-                    cam_from_world: &f.cam_from_world,
-                    depth: d,
-                })
+                .map(|(f, d)| DepthView::of(f, d))
                 .collect();
-            let search: Vec<SunView> = picked
-                .iter()
-                .zip(&images)
-                .map(|(&v, image)| SunView {
-                    view: views[v],
-                    others: neighbours[v].iter().map(|&o| views[o]).collect(),
-                    image,
-                })
-                .collect();
+            let search = sun_views(&views, &neighbours, &picked, &images);
             let t = std::time::Instant::now();
             let Some(est) = estimate_sun(&search, SIDE) else {
                 println!("| {data} | {name} | none | | | | | |");

@@ -14,8 +14,8 @@ use matloc_data::images::{downscale_depth, encode_png_rgb, load_frame_image};
 use matloc_data::{Dataset, Frame, Split};
 use matloc_surface::FrameSurfaces;
 use matloc_surface::sunlight::{
-    DepthView, ShadowEdges, SunView, estimate_sun, lift_shadows, nearest_views, shadow_mask,
-    sun_edges,
+    DepthView, ShadowEdges, estimate_sun, lift_shadows, nearest_views, shadow_mask, spread,
+    sun_edges, sun_views,
 };
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -115,23 +115,12 @@ fn choose_sun(
     frames: &[&Frame],
     surface: &str,
 ) -> Result<(Vector3<f64>, &'static str, SunCheck), PipelineError> {
-    let n = views.len();
-    let picked: Vec<usize> = (0..SUN_VIEWS.min(n))
-        .map(|k| (2 * k + 1) * n / (2 * SUN_VIEWS.min(n)))
-        .collect();
+    let picked = spread(views.len(), SUN_VIEWS);
     let images = picked
         .par_iter()
         .map(|&v| Ok(load_frame_image(dataset, frames[v], 1)?.0))
         .collect::<Result<Vec<Image<f32>>, PipelineError>>()?;
-    let search: Vec<SunView> = picked
-        .iter()
-        .zip(&images)
-        .map(|(&v, image)| SunView {
-            view: views[v],
-            others: neighbours[v].iter().map(|&o| views[o]).collect(),
-            image,
-        })
-        .collect();
+    let search = sun_views(views, neighbours, &picked, &images);
     let started = std::time::Instant::now();
     let (sun, source, rival) = match given {
         Some((sun, source)) => (sun, source, None),
@@ -234,11 +223,7 @@ fn lift(
     let views: Vec<DepthView> = frames
         .iter()
         .zip(&depths)
-        .map(|(f, d)| DepthView {
-            camera: &f.camera,
-            cam_from_world: &f.cam_from_world,
-            depth: d,
-        })
+        .map(|(f, d)| DepthView::of(f, d))
         .collect();
     // Each view's nearest views by camera centre: they vote on its shadows.
     let centres: Vec<_> = frames.iter().map(|f| f.center()).collect();

@@ -24,6 +24,32 @@ pub struct SunView<'a> {
     pub image: &'a Image<f32>,
 }
 
+/// `count` of `n` indices spread evenly (the middle of each of `count` equal runs; all of
+/// them when `n ≤ count`).
+pub fn spread(n: usize, count: usize) -> Vec<usize> {
+    let c = count.min(n);
+    (0..c).map(|k| (2 * k + 1) * n / (2 * c)).collect()
+}
+
+/// The search's views: each of `picked` (indices into `views`) with its `neighbours` voting
+/// and its image (`images[k]` for `picked[k]`).
+pub fn sun_views<'a>(
+    views: &[DepthView<'a>],
+    neighbours: &[Vec<usize>],
+    picked: &[usize],
+    images: &'a [Image<f32>],
+) -> Vec<SunView<'a>> {
+    picked
+        .iter()
+        .zip(images)
+        .map(|(&v, image)| SunView {
+            view: views[v],
+            others: neighbours[v].iter().map(|&o| views[o]).collect(),
+            image,
+        })
+        .collect()
+}
+
 /// What the search found.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SunEstimate {
@@ -244,6 +270,13 @@ mod tests {
             .map(|d| d.dot(&c).acos().to_degrees())
             .fold(0.0, f64::max);
         assert!((widest - 8.0 * 2f64.sqrt()).abs() < 0.2, "{widest}");
+    }
+
+    #[test]
+    fn spread_takes_the_middle_of_equal_runs() {
+        assert_eq!(spread(16, 4), vec![2, 6, 10, 14]);
+        assert_eq!(spread(3, 8), vec![0, 1, 2]);
+        assert!(spread(0, 8).is_empty());
     }
 
     #[test]
