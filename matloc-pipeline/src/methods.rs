@@ -197,6 +197,20 @@ pub fn localize_with(
             return Err(PipelineError::Internal("handled above"));
         }
     };
+    // A pose no training image looks like is refused, as the structure method refuses it:
+    // rgb-keypoints' wrong poses on `small` looked 42° and 61° away from every training view
+    // (docs/DECISIONS.md). Maps without the structure stage keep every pose.
+    let mut out = out;
+    let mut failure = None;
+    if let (Some(pose), Some(structure)) = (out.cam_from_world, map.structure.as_ref())
+        && structure
+            .images_looking_like(&pose, options.structure.max_view_angle_deg)
+            .next()
+            .is_none()
+    {
+        out.cam_from_world = None;
+        failure = Some("no training image looks the way the solved pose does".to_string());
+    }
     let mut stage_seconds = vec![("place".to_string(), place_s)];
     stage_seconds.extend(out.stage_seconds);
     // rgb-keypoints: 1 − NFA of its consensus, as the structure method's; iNeRF: none.
@@ -229,7 +243,7 @@ pub fn localize_with(
             confidence: confidence.unwrap_or(0.0),
             passes: out.iterations as usize,
             accepted: out.cam_from_world.is_some(),
-            failure: None,
+            failure,
             alignment: 0.0,
             log10_nfa: out.log10_nfa,
         }],

@@ -2,7 +2,7 @@
 
 use std::time::Instant;
 
-use matloc_core::pose::{Pose, camera_center, viewing_direction};
+use matloc_core::pose::{Pose, camera_center};
 use matloc_core::{Camera, Image};
 use matloc_keypoints::{
     GrayImage, Keypoint, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
@@ -273,14 +273,10 @@ struct Timer {
 /// The training images nearest `start` (camera centre) among those looking within the
 /// angle, at most `options.neighbours`.
 fn nearest_images(map: &StructureMap, start: &Pose, options: &StructureOptions) -> Vec<usize> {
-    let (center, dir) = (camera_center(start), viewing_direction(start));
-    let cos_max = options.max_view_angle_deg.to_radians().cos();
+    let center = camera_center(start);
     let mut near: Vec<(f64, usize)> = map
-        .images()
-        .iter()
-        .enumerate()
-        .filter(|(_, im)| im.viewing_direction().dot(&dir) >= cos_max)
-        .map(|(i, im)| ((im.center() - center).norm(), i))
+        .images_looking_like(start, options.max_view_angle_deg)
+        .map(|i| ((map.images()[i].center() - center).norm(), i))
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0));
     near.into_iter()

@@ -187,6 +187,23 @@ impl StructureMap {
         &self.images
     }
 
+    /// The images looking within `max_view_angle_deg` of the viewing direction of
+    /// `cam_from_world` (indices): a pose none of them looks like is one the survey never
+    /// saw, so nothing in the map can confirm it.
+    pub fn images_looking_like(
+        &self,
+        cam_from_world: &matloc_core::Pose,
+        max_view_angle_deg: f64,
+    ) -> impl Iterator<Item = usize> + '_ {
+        let dir = matloc_core::pose::viewing_direction(cam_from_world);
+        let cos_max = max_view_angle_deg.to_radians().cos();
+        self.images
+            .iter()
+            .enumerate()
+            .filter(move |(_, im)| im.viewing_direction().dot(&dir) >= cos_max)
+            .map(|(i, _)| i)
+    }
+
     /// Observations over all images.
     pub fn observations(&self) -> usize {
         self.images.iter().map(|i| i.point.len()).sum()
@@ -554,6 +571,22 @@ pub(crate) mod tests {
                 UnitQuaternion::from_euler_angles(0.1 * f as f64, 0.0, 0.2),
             )
         })
+    }
+
+    #[test]
+    fn images_looking_like_a_pose_are_those_within_the_angle() {
+        let m = sample();
+        // The images look 0.3, 0.5 and 0.8 rad about x away from a camera looking along +z.
+        let like_first = m.images()[0].cam_from_world;
+        let all: Vec<usize> = m.images_looking_like(&like_first, 37.0).collect();
+        assert_eq!(all, vec![0, 1, 2]);
+        let near: Vec<usize> = m.images_looking_like(&like_first, 12.0).collect();
+        assert_eq!(near, vec![0, 1]);
+        let turned = Pose::from_parts(
+            Translation3::new(0.0, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.3 + std::f64::consts::PI, 0.0, 0.2),
+        );
+        assert_eq!(m.images_looking_like(&turned, 37.0).count(), 0);
     }
 
     #[test]
