@@ -168,7 +168,7 @@ pub fn localize_with(
         .nerf(block)
         .ok_or(PipelineError::Internal("hypothesis of a missing block"))?;
     let mut rng = ChaCha8Rng::seed_from_u64(map.config.localize.seed);
-    let out = match method {
+    let mut out = match method {
         Method::RgbKeypoints => rgb_keypoints(
             model,
             camera,
@@ -197,12 +197,12 @@ pub fn localize_with(
             return Err(PipelineError::Internal("handled above"));
         }
     };
-    // A pose no training image looks like is refused, as the structure method refuses it:
-    // rgb-keypoints' wrong poses on `small` looked 42° and 61° away from every training view
-    // (docs/DECISIONS.md). Maps without the structure stage keep every pose.
-    let mut out = out;
+    // rgb-keypoints refuses a pose no training image looks like, as the structure method does
+    // (its wrong poses on `small` looked 42° and 61° away from every training view;
+    // docs/DECISIONS.md). Maps without the structure stage keep every pose.
     let mut failure = None;
-    if let (Some(pose), Some(structure)) = (out.cam_from_world, map.structure.as_ref())
+    if method == Method::RgbKeypoints
+        && let (Some(pose), Some(structure)) = (out.cam_from_world, map.structure.as_ref())
         && structure
             .images_looking_like(&pose, options.structure.max_view_angle_deg)
             .next()

@@ -122,8 +122,14 @@ fn choose_sun(
         .collect::<Result<Vec<Image<f32>>, PipelineError>>()?;
     let search = sun_views(views, neighbours, &picked, &images);
     let started = std::time::Instant::now();
-    let (sun, source, rival) = match given {
-        Some((sun, source)) => (sun, source, None),
+    // The estimate measured its own edges on the same grid; a given sun is measured here.
+    let (sun, source, rival, measured) = match given {
+        Some((sun, source)) => {
+            let measured = sun_edges(&search, &sun, SUN_SIDE)
+                .contrast()
+                .map_or((0.0, 0), |(c, _, p)| (c, p));
+            (sun, source, None, measured)
+        }
         None => {
             let est = estimate_sun(&search, SUN_SIDE).ok_or_else(|| {
                 PipelineError::Config(format!(
@@ -132,13 +138,15 @@ fn choose_sun(
                      the sun) or give the dataset a `sun_direction` in its metadata"
                 ))
             })?;
-            (est.direction, "estimated from the images", Some(est.rival))
+            (
+                est.direction,
+                "estimated from the images",
+                Some(est.rival),
+                (est.contrast, est.pairs),
+            )
         }
     };
-    let (contrast, pairs) = match sun_edges(&search, &sun, SUN_SIDE).contrast() {
-        Some((c, _, p)) => (c, p),
-        None => (0.0, 0),
-    };
+    let (contrast, pairs) = measured;
     tracing::info!(
         direction = ?sun.as_slice(),
         source,

@@ -105,12 +105,14 @@ pub fn estimate_sun(views: &[SunView], max_side: usize) -> Option<SunEstimate> {
     // (±2° in 1° steps).
     let refined: Vec<(Vector3<f64>, f64)> = seeds
         .iter()
-        .map(|s| best_of(&around(s, 8.0, 2.0), |d| coarse.score(views, d).0))
+        .map(|s| {
+            let (d, score, _) = best_of(&around(s, 8.0, 2.0), |d| coarse.score(views, d));
+            (d, score)
+        })
         .collect();
     let (seed, _) = refined.iter().copied().max_by(|a, b| a.1.total_cmp(&b.1))?;
     let fine = Grids::new(views, max_side);
-    let (direction, _) = best_of(&around(&seed, 2.0, 1.0), |d| fine.score(views, d).0);
-    let (_, edges) = fine.score(views, &direction);
+    let (direction, _, edges) = best_of(&around(&seed, 2.0, 1.0), |d| fine.score(views, d));
     let (contrast, _, pairs) = edges.contrast()?;
     // The best rival on the coarse pass, against the winner on the same grid.
     let own = coarse.score(views, &direction).0;
@@ -172,15 +174,21 @@ impl Grids {
     }
 }
 
-/// The candidate of `dirs` with the highest `score`, scored in parallel.
+/// The candidate of `dirs` with the highest `score`, scored in parallel, with its score and
+/// edges.
 fn best_of(
     dirs: &[Vector3<f64>],
-    score: impl Fn(&Vector3<f64>) -> f64 + Sync,
-) -> (Vector3<f64>, f64) {
-    dirs.par_iter().map(|d| (*d, score(d))).reduce(
-        || (dirs[0], f64::NEG_INFINITY),
-        |a, b| if b.1 > a.1 { b } else { a },
-    )
+    score: impl Fn(&Vector3<f64>) -> (f64, ShadowEdges) + Sync,
+) -> (Vector3<f64>, f64, ShadowEdges) {
+    dirs.par_iter()
+        .map(|d| {
+            let (s, edges) = score(d);
+            (*d, s, edges)
+        })
+        .reduce(
+            || (dirs[0], f64::NEG_INFINITY, ShadowEdges::default()),
+            |a, b| if b.1 > a.1 { b } else { a },
+        )
 }
 
 /// `n` unit vectors spread evenly over the sphere (a Fibonacci lattice).
