@@ -11,6 +11,7 @@ use matloc_pipeline::build::MapConfig;
 use matloc_pipeline::methods::Method;
 
 use crate::eval_cmd::{self, EvalArgs};
+use crate::method_options::MethodOptionsArgs;
 use crate::pose_formats::WorldArg;
 use crate::split_args::SplitArgs;
 use crate::{map_cmd, synth_cmd};
@@ -87,6 +88,7 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<()> {
             world: WorldArg::Data,
             split: SplitArgs::default(),
             thresholds: Vec::new(),
+            method_options: MethodOptionsArgs::default(),
         },
         quiet,
     )?;

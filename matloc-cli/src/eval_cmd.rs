@@ -17,6 +17,7 @@ use matloc_pipeline::{
     summarize_with, timing_table,
 };
 
+use crate::method_options::MethodOptionsArgs;
 use crate::plot;
 use crate::pose_formats::{
     Localized, OutputWorld, PoseFormat, QueryRecord, WorldArg, jsonl_record, write_poses,
@@ -67,6 +68,9 @@ pub struct EvalArgs {
     /// 0.25,2 0.5,5 1,5 5,10.
     #[arg(long, num_args = 1.., value_parser = parse_threshold)]
     pub thresholds: Vec<RecallThreshold>,
+    /// The methods' settings.
+    #[command(flatten)]
+    pub method_options: MethodOptionsArgs,
 }
 
 fn parse_threshold(s: &str) -> Result<RecallThreshold, String> {
@@ -100,7 +104,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    let options = MethodOptions::default();
+    let options = args.method_options.load()?;
     let mut runs = Vec::new();
     for &method in &args.methods {
         let n = match method {
@@ -208,8 +212,20 @@ fn differences(runs: &[MethodRun], map: &LoadedMap, method_options: &MethodOptio
                 options.max_accept_rotation_deg
             ),
             Method::RgbKeypoints => format!(
-                "the top-1 hypothesis only (the paper's comparison); refuses only when PnP finds no consensus of {} inliers; confidence 1 − NFA of that consensus (not fitted)",
-                method_options.keypoints.pnp.ransac.min_inliers
+                "the top-1 hypothesis only (as the paper's comparison), {}; refuses when PnP finds no consensus of {} inliers{}, or no training image looks within {}° of the pose's direction; confidence 1 − NFA of the last consensus (not fitted)",
+                match method_options.keypoints.passes {
+                    1 => "one render at it (the paper's)".to_string(),
+                    n => format!(
+                        "{n} passes, each after the first rendering at the pose the last one solved"
+                    ),
+                },
+                method_options.keypoints.pnp.ransac.min_inliers,
+                if method_options.keypoints.passes > 1 {
+                    " in any pass, when a pass moves the pose further than the one before"
+                } else {
+                    ""
+                },
+                structure.max_view_angle_deg
             ),
             Method::Inerf | Method::CurriculumInerf => {
                 "the top-1 hypothesis only; never refuses; no confidence".to_string()
@@ -365,6 +381,14 @@ fn report(
         args.map.display(),
         args.data.display()
     )?;
+    if let Some(p) = &args.method_options.method_options {
+        writeln!(
+            s,
+            "Method options from `{}`: `{}`.\n",
+            p.display(),
+            serde_json::to_string(method_options)?
+        )?;
+    }
     // Scene facts.
     let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for f in &dataset.frames {

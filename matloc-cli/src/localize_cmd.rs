@@ -11,8 +11,9 @@ use clap::Args;
 use matloc_core::Camera;
 use matloc_data::Dataset;
 use matloc_pipeline::LoadedMap;
-use matloc_pipeline::methods::{Method, MethodOptions, QueryResult, localize_with};
+use matloc_pipeline::methods::{Method, QueryResult, localize_with};
 
+use crate::method_options::MethodOptionsArgs;
 use crate::pose_formats::{
     Localized, OutputWorld, PoseFormat, QueryRecord, WorldArg, header, omission, record_text,
     summary, write_poses,
@@ -65,6 +66,9 @@ pub struct LocalizeArgs {
     /// Test split of the --data dataset when it has none; by default the map's.
     #[command(flatten)]
     split: SplitArgs,
+    /// The methods' settings.
+    #[command(flatten)]
+    method_options: MethodOptionsArgs,
 }
 
 /// Localizes every query in order: a query whose camera, image or localization fails becomes
@@ -206,7 +210,7 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
     if stream && let Some(h) = header(args.format) {
         out!("{h}")?;
     }
-    let options = MethodOptions::default();
+    let options = args.method_options.load()?;
     let records = localize_batch(
         &specs,
         target.as_ref(),

@@ -12,6 +12,7 @@ mod localize_cmd;
 mod logging;
 mod map_cmd;
 mod match_cmd;
+mod method_options;
 mod nerf_cmd;
 mod partition_cmd;
 mod place_cmd;

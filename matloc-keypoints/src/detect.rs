@@ -30,7 +30,7 @@ pub struct Keypoint {
 
 /// Detector settings.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct KeypointConfig {
     /// Keypoints to keep over all levels.
     pub max_keypoints: usize,

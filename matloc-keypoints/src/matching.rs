@@ -7,7 +7,7 @@ use crate::detect::Descriptor;
 
 /// Matching settings.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct MatchConfig {
     /// Lowe's ratio: keep a match if best < ratio · second best (1.0 disables).
     pub ratio: f32,

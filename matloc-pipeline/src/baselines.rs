@@ -4,6 +4,9 @@
 //!   ORB-like keypoints between the render and the query, lift the rendered keypoints with the
 //!   rendered depth, solve PnP in LO-RANSAC; any consensus PnP finds is returned, with the
 //!   a-contrario NFA of that consensus as its confidence (as the structure localizer's).
+//!   By default a second pass renders again at the solved pose (FVLocNeRF's iteration; the
+//!   paper's single render is `passes: 1`) and refuses when that pass finds no consensus or
+//!   moves the pose further than the first did.
 //! - **iNeRF**: minimise the photometric error of rendered vs query pixels over the pose by
 //!   Adam on se(3), 300 iterations, pixels resampled each iteration (half around keypoints —
 //!   iNeRF's interest-region sampling — half uniform).
@@ -36,7 +39,7 @@ use crate::error::PipelineError;
 pub struct BaselineOutcome {
     /// Estimated pose, `None` when the method could not produce one (refused).
     pub cam_from_world: Option<Pose>,
-    /// Optimisation iterations (iNeRF) or 1 (keypoints).
+    /// Optimisation iterations (iNeRF) or render–match–PnP passes run (keypoints).
     pub iterations: u32,
     /// Seconds per stage.
     pub stage_seconds: Vec<(String, f64)>,
@@ -46,6 +49,8 @@ pub struct BaselineOutcome {
     pub inliers: usize,
     /// Base-10 NFA of the PnP consensus (keypoints only; `None` without one).
     pub log10_nfa: Option<f64>,
+    /// Why a pose that was found is not returned (keypoints: the passes diverged).
+    pub failure: Option<String>,
 }
 
 fn check_query(camera: &Camera, query: &Image<f32>) -> Result<(), PipelineError> {
@@ -60,8 +65,8 @@ fn check_query(camera: &Camera, query: &Image<f32>) -> Result<(), PipelineError>
 }
 
 /// Options of the rendered-RGB + keypoints baseline.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct KeypointBaselineOptions {
     /// Detector settings (same for render and query).
     pub keypoints: KeypointConfig,
@@ -69,6 +74,22 @@ pub struct KeypointBaselineOptions {
     pub matching: MatchConfig,
     /// PnP settings.
     pub pnp: PnpOptions,
+    /// Render–match–PnP passes, each after the first rendering at the pose the previous one
+    /// solved (FVLocNeRF's iteration); 1 is the paper's single render at the coarse pose. A
+    /// later pass that finds no consensus, or moves the pose further than the pass before,
+    /// refuses the query. Default 2 (docs/DECISIONS.md).
+    pub passes: u32,
+}
+
+impl Default for KeypointBaselineOptions {
+    fn default() -> Self {
+        Self {
+            keypoints: KeypointConfig::default(),
+            matching: MatchConfig::default(),
+            pnp: PnpOptions::default(),
+            passes: 2,
+        }
+    }
 }
 
 /// `model`'s view at `cam_from_world`, every pixel of `camera`, with its colour image.
@@ -94,7 +115,8 @@ pub(crate) fn render_colour(
     Ok((view, rgb))
 }
 
-/// Rendered RGB + keypoints + PnP from a coarse pose.
+/// Rendered RGB + keypoints + PnP from a coarse pose, `options.passes` times (each pass
+/// renders at the pose the previous one solved).
 pub fn rgb_keypoints(
     model: &NerfModel,
     camera: &Camera,
@@ -104,19 +126,96 @@ pub fn rgb_keypoints(
     rng: &mut dyn RngCore,
 ) -> Result<BaselineOutcome, PipelineError> {
     check_query(camera, query)?;
-    let mut stages = Vec::new();
+    let mut seconds = [0.0f64; 4];
     let t = Instant::now();
-    let (view, rendered) = render_colour(model, camera, coarse_cam_from_world)?;
-    stages.push(("render".to_string(), t.elapsed().as_secs_f64()));
+    let query_keypoints = detect_and_describe(&GrayImage::from_image(query), &options.keypoints);
+    seconds[1] += t.elapsed().as_secs_f64();
+    let mut pose = *coarse_cam_from_world;
+    let mut outcome = KeypointPass::default();
+    let (mut passes, mut last_move, mut failure) = (0, f64::INFINITY, None);
+    for pass in 0..options.passes.max(1) {
+        outcome = keypoint_pass(
+            model,
+            camera,
+            &query_keypoints,
+            &pose,
+            options,
+            rng,
+            &mut seconds,
+        )?;
+        passes = pass + 1;
+        let Some(p) = outcome.cam_from_world else {
+            break;
+        };
+        // Rendering closer to the query must move the pose less each pass; a pass that moves
+        // it further than the one before has lost the scene (on `small` such a second pass
+        // took a 5.6 m pose to 26 m).
+        let moved = (camera_centre(&p) - camera_centre(&pose)).norm();
+        if moved > last_move {
+            failure = Some(format!(
+                "pass {passes} moved the pose {moved:.2} m, further than the pass before \
+                 ({last_move:.2} m)"
+            ));
+            outcome.cam_from_world = None;
+            break;
+        }
+        (pose, last_move) = (p, moved);
+    }
+    let names = ["render", "keypoints", "match", "pnp"];
+    Ok(BaselineOutcome {
+        failure,
+        cam_from_world: outcome.cam_from_world,
+        iterations: passes,
+        stage_seconds: names
+            .iter()
+            .zip(seconds)
+            .map(|(n, s)| (n.to_string(), s))
+            .collect(),
+        matches: outcome.matches,
+        inliers: outcome.inliers,
+        log10_nfa: outcome.log10_nfa,
+    })
+}
+
+fn camera_centre(cam_from_world: &Pose) -> Vector3<f64> {
+    cam_from_world.inverse().translation.vector
+}
+
+/// One render–match–PnP pass of the keypoint baseline.
+#[derive(Default)]
+struct KeypointPass {
+    cam_from_world: Option<Pose>,
+    matches: usize,
+    inliers: usize,
+    log10_nfa: Option<f64>,
+}
+
+/// Renders at `cam_from_world`, matches the render's keypoints to the query's, lifts them with
+/// the rendered depth and solves PnP; adds its seconds to `seconds` (render, keypoints, match,
+/// PnP).
+fn keypoint_pass(
+    model: &NerfModel,
+    camera: &Camera,
+    (kq, dq): &(
+        Vec<matloc_keypoints::Keypoint>,
+        Vec<matloc_keypoints::Descriptor>,
+    ),
+    cam_from_world: &Pose,
+    options: &KeypointBaselineOptions,
+    rng: &mut dyn RngCore,
+    seconds: &mut [f64; 4],
+) -> Result<KeypointPass, PipelineError> {
+    let t = Instant::now();
+    let (view, rendered) = render_colour(model, camera, cam_from_world)?;
+    seconds[0] += t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let (kq, dq) = detect_and_describe(&GrayImage::from_image(query), &options.keypoints);
     let (kr, dr) = detect_and_describe(&GrayImage::from_image(&rendered), &options.keypoints);
-    stages.push(("keypoints".to_string(), t.elapsed().as_secs_f64()));
+    seconds[1] += t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let matches = match_descriptors(&dq, &dr, &options.matching);
-    let world_from_cam = coarse_cam_from_world.inverse();
+    let matches = match_descriptors(dq, &dr, &options.matching);
+    let world_from_cam = cam_from_world.inverse();
     let (w, h) = (view.width, view.height);
     let mut pixels = Vec::new();
     let mut points = Vec::new();
@@ -140,34 +239,33 @@ pub fn rgb_keypoints(
         pixels.push(Point2::new(q.x as f64, q.y as f64));
         scores.push(1.0 - m.distance as f64 / 256.0);
     }
-    stages.push(("match".to_string(), t.elapsed().as_secs_f64()));
+    seconds[2] += t.elapsed().as_secs_f64();
 
     let t = Instant::now();
     let solver = LoRansacPnp::new(options.pnp.clone());
     let input = PnpInput::new(camera, &pixels, &points).with_scores(&scores);
     let result = solver.solve(&input, rng);
-    stages.push(("pnp".to_string(), t.elapsed().as_secs_f64()));
-    let (pose, inliers, nfa) = match result {
+    seconds[3] += t.elapsed().as_secs_f64();
+    Ok(match result {
         Ok(r) => {
             let n = r.stats.num_inliers;
-            let nfa = solver.consensus_log10_nfa(camera, pixels.len(), n);
-            (Some(r.cam_from_world), n, Some(nfa))
+            KeypointPass {
+                cam_from_world: Some(r.cam_from_world),
+                matches: pixels.len(),
+                inliers: n,
+                log10_nfa: Some(solver.consensus_log10_nfa(camera, pixels.len(), n)),
+            }
         }
-        Err(_) => (None, 0, None),
-    };
-    Ok(BaselineOutcome {
-        cam_from_world: pose,
-        iterations: 1,
-        stage_seconds: stages,
-        matches: pixels.len(),
-        inliers,
-        log10_nfa: nfa,
+        Err(_) => KeypointPass {
+            matches: pixels.len(),
+            ..KeypointPass::default()
+        },
     })
 }
 
 /// Options of iNeRF and curriculum iNeRF.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct InerfOptions {
     /// Iterations (iNeRF 300, curriculum 200).
     pub iterations: u32,
@@ -381,6 +479,7 @@ pub fn inerf(
         matches: options.pixels,
         inliers: 0,
         log10_nfa: None,
+        failure: None,
     })
 }
 

@@ -102,7 +102,7 @@ pub struct QueryResult {
     pub confidence: Option<f64>,
     /// PnP inliers (MatLoc, keypoints).
     pub inliers: usize,
-    /// Optimisation iterations (iNeRF) or refinement passes (MatLoc).
+    /// Optimisation iterations (iNeRF) or refinement passes (MatLoc, rgb-keypoints).
     pub iterations: u32,
     /// Place hypotheses tried (MatLoc) or the one the baseline started from.
     pub hypotheses: Vec<HypothesisReport>,
@@ -112,9 +112,9 @@ pub struct QueryResult {
     pub total_seconds: f64,
 }
 
-/// Per-method settings.
+/// Per-method settings (`matloc localize` / `eval --method-options FILE` reads them as JSON).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct MethodOptions {
     /// Keypoint baseline.
     pub keypoints: KeypointBaselineOptions,
@@ -200,7 +200,7 @@ pub fn localize_with(
     // rgb-keypoints refuses a pose no training image looks like, as the structure method does
     // (its wrong poses on `small` looked 42° and 61° away from every training view;
     // docs/DECISIONS.md). Maps without the structure stage keep every pose.
-    let mut failure = None;
+    let mut failure = out.failure.take();
     if method == Method::RgbKeypoints
         && let (Some(pose), Some(structure)) = (out.cam_from_world, map.structure.as_ref())
         && structure
