@@ -22,6 +22,7 @@
 
 use std::time::Instant;
 
+use matloc_core::pose::camera_center;
 use matloc_core::{Camera, Image, Pose};
 use matloc_keypoints::{
     GrayImage, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
@@ -49,7 +50,7 @@ pub struct BaselineOutcome {
     pub inliers: usize,
     /// Base-10 NFA of the PnP consensus (keypoints only; `None` without one).
     pub log10_nfa: Option<f64>,
-    /// Why a pose that was found is not returned (keypoints: the passes diverged).
+    /// Why a later pass refused the query (keypoints: no consensus, or the passes diverged).
     pub failure: Option<String>,
 }
 
@@ -145,12 +146,17 @@ pub fn rgb_keypoints(
         )?;
         passes = pass + 1;
         let Some(p) = outcome.cam_from_world else {
+            if pass > 0 {
+                failure = Some(format!(
+                    "pass {passes} found no consensus at the pose the one before solved"
+                ));
+            }
             break;
         };
         // Rendering closer to the query must move the pose less each pass; a pass that moves
         // it further than the one before has lost the scene (on `small` such a second pass
         // took a 5.6 m pose to 26 m).
-        let moved = (camera_centre(&p) - camera_centre(&pose)).norm();
+        let moved = (camera_center(&p) - camera_center(&pose)).norm();
         if moved > last_move {
             failure = Some(format!(
                 "pass {passes} moved the pose {moved:.2} m, further than the pass before \
@@ -175,10 +181,6 @@ pub fn rgb_keypoints(
         inliers: outcome.inliers,
         log10_nfa: outcome.log10_nfa,
     })
-}
-
-fn camera_centre(cam_from_world: &Pose) -> Vector3<f64> {
-    cam_from_world.inverse().translation.vector
 }
 
 /// One render–match–PnP pass of the keypoint baseline.
