@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::SurfaceError;
 
 mod estimate;
-pub use estimate::{SunEstimate, SunView, estimate_sun, spread, sun_edges, sun_views};
+pub use estimate::{SunEstimate, SunView, estimate_sun, sun_edges, sun_views};
 
 /// Settings of the shadow lifting (the map's `sunlight` section).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -287,11 +287,10 @@ const MIN_PEAK_PAIRS: u64 = 30;
 #[derive(Clone, Debug)]
 pub struct ShadowEdges {
     hist: [[u64; BINS]; 3],
-    /// Sum, sum of squares and count of every pair's `ln(lit / shadowed)` of the channels'
-    /// mean linear light, clamped to ±[`MAX_LOG_RATIO`] (how strongly the masks' edges darken
-    /// the images, which the sun search scores).
+    /// Sum and count of every pair's `ln(lit / shadowed)` of the channels' mean linear light,
+    /// clamped to ±[`MAX_LOG_RATIO`] (how strongly the masks' edges darken the images, which
+    /// the sun search scores).
     log_sum: f64,
-    log_sq: f64,
     log_pairs: u64,
 }
 
@@ -303,7 +302,6 @@ impl Default for ShadowEdges {
         ShadowEdges {
             hist: [[0; BINS]; 3],
             log_sum: 0.0,
-            log_sq: 0.0,
             log_pairs: 0,
         }
     }
@@ -344,17 +342,15 @@ impl ShadowEdges {
                         continue;
                     }
                     let j = oy as usize * w + ox as usize;
-                    let mean =
-                        |p: usize| (0..3).map(|k| to_linear(px[3 * p + k])).sum::<f32>() / 3.0;
-                    let r = f64::from((mean(j).max(1e-4) / mean(i).max(1e-4)).ln())
+                    let lit: [f32; 3] = std::array::from_fn(|k| to_linear(px[3 * j + k]));
+                    let dark: [f32; 3] = std::array::from_fn(|k| to_linear(px[3 * i + k]));
+                    let mean = |v: &[f32; 3]| v.iter().sum::<f32>() / 3.0;
+                    let r = f64::from((mean(&lit).max(1e-4) / mean(&dark).max(1e-4)).ln())
                         .clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO);
                     self.log_sum += r;
-                    self.log_sq += r * r;
                     self.log_pairs += 1;
                     for k in 0..3 {
-                        let lit = to_linear(px[3 * j + k]).max(1e-4);
-                        let dark = to_linear(px[3 * i + k]).max(1e-4);
-                        let b = ((lit / dark).ln() - LOG_MIN) / BIN;
+                        let b = ((lit[k].max(1e-4) / dark[k].max(1e-4)).ln() - LOG_MIN) / BIN;
                         if b >= 0.0 && (b as usize) < BINS {
                             self.hist[k][b as usize] += 1;
                         }
@@ -372,20 +368,13 @@ impl ShadowEdges {
             }
         }
         self.log_sum += other.log_sum;
-        self.log_sq += other.log_sq;
         self.log_pairs += other.log_pairs;
     }
 
-    /// Mean and standard deviation of `ln(lit / shadowed)` over every pair (brightness, clamped
-    /// to ±3), and the number of pairs; `None` without pairs.
-    pub fn contrast(&self) -> Option<(f64, f64, u64)> {
-        if self.log_pairs == 0 {
-            return None;
-        }
-        let n = self.log_pairs as f64;
-        let mean = self.log_sum / n;
-        let sd = (self.log_sq / n - mean * mean).max(0.0).sqrt();
-        Some((mean, sd, self.log_pairs))
+    /// Mean `ln(lit / shadowed)` over every pair (brightness, clamped to ±3) and the number of
+    /// pairs; `None` without pairs.
+    pub fn contrast(&self) -> Option<(f64, u64)> {
+        (self.log_pairs > 0).then(|| (self.log_sum / self.log_pairs as f64, self.log_pairs))
     }
 
     /// Pairs collected (of the first channel, inside the histogram's range).

@@ -10,7 +10,7 @@ use matloc_core::Image;
 use matloc_data::images::{downscale_depth, load_frame_image};
 use matloc_data::{Split, read_dataset};
 use matloc_surface::sunlight::{
-    DepthView, estimate_sun, nearest_views, shadow_mask, spread, sun_edges, sun_views,
+    DepthView, estimate_sun, nearest_views, shadow_mask, sun_edges, sun_views,
 };
 use matloc_surface::{FrameSurfaces, SurfaceChoice, SurfaceConfig};
 
@@ -35,7 +35,7 @@ fn main() {
         let frames: Vec<_> = train.iter().map(|&i| &dataset.frames[i]).collect();
         let centres: Vec<_> = frames.iter().map(|f| f.center()).collect();
         let neighbours = nearest_views(&centres, 6);
-        let picked = spread(frames.len(), VIEWS);
+        let picked = matloc_core::subset::evenly_spaced(frames.len(), VIEWS);
         let images: Vec<Image<f32>> = picked
             .iter()
             .map(|&v| load_frame_image(&dataset, frames[v], 1).expect("image").0)
@@ -73,7 +73,7 @@ fn main() {
             let secs = t.elapsed().as_secs_f64();
             let true_edges = match truth {
                 Some(sun) => match sun_edges(&search, &sun, SIDE).contrast() {
-                    Some((c, _, n)) => format!("{c:.3}, {n}"),
+                    Some((c, n)) => format!("{c:.3}, {n}"),
                     None => "no edges".into(),
                 },
                 None => "?".into(),

@@ -14,8 +14,8 @@ use matloc_data::images::{downscale_depth, encode_png_rgb, load_frame_image};
 use matloc_data::{Dataset, Frame, Split};
 use matloc_surface::FrameSurfaces;
 use matloc_surface::sunlight::{
-    DepthView, ShadowEdges, estimate_sun, lift_shadows, nearest_views, shadow_mask, spread,
-    sun_edges, sun_views,
+    DepthView, ShadowEdges, estimate_sun, lift_shadows, nearest_views, shadow_mask, sun_edges,
+    sun_views,
 };
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -115,7 +115,7 @@ fn choose_sun(
     frames: &[&Frame],
     surface: &str,
 ) -> Result<(Vector3<f64>, &'static str, SunCheck), PipelineError> {
-    let picked = spread(views.len(), SUN_VIEWS);
+    let picked = matloc_core::subset::evenly_spaced(views.len(), SUN_VIEWS);
     let images = picked
         .par_iter()
         .map(|&v| Ok(load_frame_image(dataset, frames[v], 1)?.0))
@@ -127,7 +127,7 @@ fn choose_sun(
         Some((sun, source)) => {
             let measured = sun_edges(&search, &sun, SUN_SIDE)
                 .contrast()
-                .map_or((0.0, 0), |(c, _, p)| (c, p));
+                .unwrap_or((0.0, 0));
             (sun, source, None, measured)
         }
         None => {

@@ -24,13 +24,6 @@ pub struct SunView<'a> {
     pub image: &'a Image<f32>,
 }
 
-/// `count` of `n` indices spread evenly (the middle of each of `count` equal runs; all of
-/// them when `n ≤ count`).
-pub fn spread(n: usize, count: usize) -> Vec<usize> {
-    let c = count.min(n);
-    (0..c).map(|k| (2 * k + 1) * n / (2 * c)).collect()
-}
-
 /// The search's views: each of `picked` (indices into `views`) with its `neighbours` voting
 /// and its image (`images[k]` for `picked[k]`).
 pub fn sun_views<'a>(
@@ -113,7 +106,7 @@ pub fn estimate_sun(views: &[SunView], max_side: usize) -> Option<SunEstimate> {
     let (seed, _) = refined.iter().copied().max_by(|a, b| a.1.total_cmp(&b.1))?;
     let fine = Grids::new(views, max_side);
     let (direction, _, edges) = best_of(&around(&seed, 2.0, 1.0), |d| fine.score(views, d));
-    let (contrast, _, pairs) = edges.contrast()?;
+    let (contrast, pairs) = edges.contrast()?;
     // The best rival on the coarse pass, against the winner on the same grid.
     let own = coarse.score(views, &direction).0;
     let rival = scored
@@ -167,7 +160,7 @@ impl Grids {
             edges.add(img, &mask);
         }
         let score = match edges.contrast() {
-            Some((mean, _, n)) => mean * n as f64 / (n as f64 + PRIOR_PAIRS),
+            Some((mean, n)) => mean * n as f64 / (n as f64 + PRIOR_PAIRS),
             None => f64::NEG_INFINITY,
         };
         (score, edges)
@@ -278,13 +271,6 @@ mod tests {
             .map(|d| d.dot(&c).acos().to_degrees())
             .fold(0.0, f64::max);
         assert!((widest - 8.0 * 2f64.sqrt()).abs() < 0.2, "{widest}");
-    }
-
-    #[test]
-    fn spread_takes_the_middle_of_equal_runs() {
-        assert_eq!(spread(16, 4), vec![2, 6, 10, 14]);
-        assert_eq!(spread(3, 8), vec![0, 1, 2]);
-        assert!(spread(0, 8).is_empty());
     }
 
     #[test]
