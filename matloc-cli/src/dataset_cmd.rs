@@ -54,6 +54,13 @@ pub fn info(path: &Path, json: bool, deep: bool) -> Result<()> {
         }
     }
     if !problems.is_empty() {
+        // Also on stderr, one line each, for whoever reads only the errors.
+        for p in problems.iter().take(50) {
+            errln!("problem: {p}");
+        }
+        if problems.len() > 50 {
+            errln!("problem: ... and {} more", problems.len() - 50);
+        }
         bail!("{} problem(s) found in {}", problems.len(), path.display());
     }
     Ok(())

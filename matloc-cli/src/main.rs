@@ -111,7 +111,7 @@ enum DatasetCommand {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Err(err) = logging::init(cli.verbose, cli.log_file.as_deref()) {
-        eprintln!("error: {}", output::error_chain(&err));
+        errln!("error: {}", output::error_chain(&err));
         return ExitCode::FAILURE;
     }
     let result = match cli.command {
@@ -140,7 +140,7 @@ fn main() -> ExitCode {
         Err(err) if output::is_closed_stdout(&err) => ExitCode::SUCCESS,
         Err(err) => {
             tracing::debug!(error = ?err, "command failed");
-            eprintln!("error: {}", output::error_chain(&err));
+            errln!("error: {}", output::error_chain(&err));
             ExitCode::FAILURE
         }
     }

@@ -267,14 +267,18 @@ pub fn read_config(path: &Path) -> Result<MapConfig> {
     let value = MapConfig::overlay_on_default(value);
     // The path of the offending key (`nerf.steps`) goes into the message, which serde alone
     // gives only as a line and column.
-    serde_path_to_error::deserialize(value).map_err(|e| {
+    let config: MapConfig = serde_path_to_error::deserialize(value).map_err(|e| {
         anyhow::anyhow!(
             "map config {}: field `{}`: {}",
             path.display(),
             e.path(),
             e.inner()
         )
-    })
+    })?;
+    config
+        .validate()
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    Ok(config)
 }
 
 /// Reads the dataset, opens (or creates) the map, applies the split rule from the flags (or,
@@ -831,7 +835,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
 /// One line per problem on stderr.
 fn report_problems(problems: &[MapError]) {
     for p in problems {
-        eprintln!("problem: {p}");
+        errln!("problem: {p}");
     }
 }
 

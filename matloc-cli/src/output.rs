@@ -63,6 +63,20 @@ macro_rules! out {
     };
 }
 
+/// Writes a line to stderr, dropping it when stderr cannot take it (closed, or a full
+/// device): the exit status still tells the caller, where `eprintln!` would panic.
+pub fn write_err(args: std::fmt::Arguments<'_>) {
+    use std::io::Write as _;
+    let _ = writeln!(std::io::stderr().lock(), "{args}");
+}
+
+/// `eprintln!` that never panics (see [`write_err`]).
+macro_rules! errln {
+    ($($arg:tt)*) => {
+        $crate::output::write_err(format_args!($($arg)*))
+    };
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -44,10 +44,22 @@ fn synth_tiny_then_info() {
     let o = matloc(&["dataset", "info", out.to_str().unwrap()]);
     let t = text(&o);
     assert!(!o.status.success());
-    assert!(
-        t.contains(&first.file_name().to_string_lossy().to_string()),
-        "{t}"
-    );
+    let name = first.file_name().to_string_lossy().to_string();
+    assert!(t.contains(&name), "{t}");
+    // A script reading only stderr learns which file, in either output mode.
+    for json in [false, true] {
+        let mut args = vec!["dataset", "info", out.to_str().unwrap()];
+        if json {
+            args.push("--json");
+        }
+        let o = matloc(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.lines()
+                .any(|l| l.starts_with("problem: ") && l.contains(&name)),
+            "--json {json}: {err}"
+        );
+    }
 }
 
 #[test]
@@ -125,6 +137,27 @@ fn a_closed_or_full_stdout_is_handled_without_a_panic() {
         assert_eq!(o.status.code(), Some(1), "{err}");
         assert!(err.contains("stdout") && !err.contains("panicked"), "{err}");
     }
+}
+
+/// An error that cannot be written because stderr is a full device still exits 1, not with
+/// a panic (101).
+#[test]
+fn an_error_on_a_full_stderr_exits_1() {
+    if !Path::new("/dev/full").exists() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_matloc"))
+        .args(["dataset", "info"])
+        .arg(dir.path().join("missing"))
+        .stderr(full)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
 }
 
 /// A map with no blocks whose stages all completed and wrote their files (nothing trained).
@@ -313,6 +346,46 @@ fn map_config_default_parses_back_and_unknown_keys_are_named() {
         assert!(!o.status.success());
         let t = text(&o);
         assert!(t.contains(&format!("unknown field `{key}`")), "{t}");
+        assert!(!dir.path().join("map").exists());
+    }
+}
+
+/// Values no stage can run with are refused when the config file is read, naming the file,
+/// the field and its bound, before anything is written.
+#[test]
+fn impossible_config_values_are_named_when_the_file_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    for (config, field) in [
+        (serde_json::json!({"nerf": {"steps": 0}}), "nerf.steps"),
+        (
+            serde_json::json!({"localize": {"top_k": 0}}),
+            "localize.top_k",
+        ),
+        (
+            serde_json::json!({"localize": {"window_fraction": -1.0}}),
+            "localize.window_fraction",
+        ),
+        (serde_json::json!({"select": {"dims": 0}}), "select.dims"),
+    ] {
+        let path = dir.path().join("config.json");
+        std::fs::write(&path, config.to_string()).unwrap();
+        let o = matloc(&[
+            "map",
+            "build",
+            "--data",
+            dir.path().join("no-data").to_str().unwrap(),
+            "--out",
+            dir.path().join("map").to_str().unwrap(),
+            "--config",
+            path.to_str().unwrap(),
+        ]);
+        assert_eq!(o.status.code(), Some(1));
+        let t = text(&o);
+        assert!(
+            t.contains(&format!("`{field}`")) && t.contains("config.json"),
+            "{t}"
+        );
+        assert!(!t.contains("panicked"), "{t}");
         assert!(!dir.path().join("map").exists());
     }
 }

@@ -883,7 +883,12 @@ pub fn parse_points3d_text(
         }
         let mut t = Tokens::new(path, line, &text);
         let id: u64 = t.parse("POINT3D_ID")?;
-        let xyz = [t.parse("X")?, t.parse("Y")?, t.parse("Z")?];
+        let xyz: [f64; 3] = [t.parse("X")?, t.parse("Y")?, t.parse("Z")?];
+        for (v, field) in xyz.iter().zip(["X", "Y", "Z"]) {
+            if !v.is_finite() {
+                return Err(t.err(field, format!("point {id}: coordinate {v} is not finite")));
+            }
+        }
         let rgb = [t.parse("R")?, t.parse("G")?, t.parse("B")?];
         let error: f64 = t.parse("ERROR")?;
         let mut track = Vec::new();
@@ -1163,6 +1168,13 @@ pub fn parse_points3d_binary(
         };
         let id = r.u64(rec, "point3D_id")?;
         let xyz = [r.f64(rec, "xyz")?, r.f64(rec, "xyz")?, r.f64(rec, "xyz")?];
+        if let Some(v) = xyz.iter().find(|v| !v.is_finite()) {
+            return Err(ColmapError::Invalid {
+                path: path.to_path_buf(),
+                record: describe(rec, "xyz"),
+                reason: format!("point {id}: coordinate {v} is not finite"),
+            });
+        }
         let rgb = [r.u8(rec, "rgb")?, r.u8(rec, "rgb")?, r.u8(rec, "rgb")?];
         let error = r.f64(rec, "error")?;
         let len = r.count(rec, "track length")?;
@@ -1371,5 +1383,38 @@ mod tests {
         b.extend_from_slice(&[0; 30]);
         let err = parse_points3d_binary(&b, Path::new("p.bin")).unwrap_err();
         assert!(matches!(err, ColmapError::Truncated { .. }), "{err}");
+    }
+
+    /// A point whose coordinates are not finite is an error naming the file, the point and
+    /// the field, in both forms.
+    #[test]
+    fn non_finite_point_coordinates_are_errors() {
+        for (text, field) in [
+            ("1 nan 0 0 0 0 0 0.5\n", "X"),
+            ("7 0 0 inf 0 0 0 0.5 3 4\n", "Z"),
+        ] {
+            let err = parse_points3d_text(text.as_bytes(), Path::new("points3D.txt")).unwrap_err();
+            let msg = err.to_string();
+            assert!(
+                msg.contains("points3D.txt") && msg.contains(&format!("`{field}`")),
+                "{msg}"
+            );
+        }
+        let mut b = 1u64.to_le_bytes().to_vec();
+        b.extend_from_slice(&5u64.to_le_bytes());
+        for v in [0.0, f64::NAN, 1.0] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend_from_slice(&[1, 2, 3]);
+        b.extend_from_slice(&0.5f64.to_le_bytes());
+        b.extend_from_slice(&0u64.to_le_bytes());
+        let err = parse_points3d_binary(&b, Path::new("points3D.bin")).unwrap_err();
+        let msg = err.to_string();
+        assert!(
+            matches!(err, ColmapError::Invalid { .. })
+                && msg.contains("points3D.bin")
+                && msg.contains("point 5"),
+            "{msg}"
+        );
     }
 }

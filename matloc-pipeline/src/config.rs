@@ -49,6 +49,62 @@ pub struct MapConfig {
 }
 
 impl MapConfig {
+    /// Checks the values no stage can run with, naming each field, its value and the bound:
+    /// a build with no NeRF steps, an empty feature selection, no place hypotheses or no
+    /// render/match pass, a matching window outside `[0, 1]`, place training without epochs.
+    /// The build's plan step calls it before anything is written (and so does the CLI when it
+    /// reads a config file). `localize.render_steps = 0` is valid: each model's own setting.
+    pub fn validate(&self) -> Result<(), crate::error::PipelineError> {
+        let mut bad = Vec::new();
+        let mut check = |ok: bool, field: &str, value: String, bound: &str| {
+            if !ok {
+                bad.push(format!("`{field}` = {value}: {bound}"));
+            }
+        };
+        let c = self;
+        check(
+            c.nerf.steps >= 1,
+            "nerf.steps",
+            c.nerf.steps.to_string(),
+            "must be at least 1",
+        );
+        check(
+            c.select.dims >= 1,
+            "select.dims",
+            c.select.dims.to_string(),
+            "must be at least 1 (47 or more keeps every dim)",
+        );
+        check(
+            c.place.train.epochs >= 1,
+            "place.train.epochs",
+            c.place.train.epochs.to_string(),
+            "must be at least 1",
+        );
+        check(
+            c.localize.top_k >= 1,
+            "localize.top_k",
+            c.localize.top_k.to_string(),
+            "must be at least 1",
+        );
+        check(
+            c.localize.max_passes >= 1,
+            "localize.max_passes",
+            c.localize.max_passes.to_string(),
+            "must be at least 1",
+        );
+        check(
+            (0.0..=1.0).contains(&c.localize.window_fraction),
+            "localize.window_fraction",
+            c.localize.window_fraction.to_string(),
+            "must be within [0, 1] of the image width (0: global matching)",
+        );
+        if bad.is_empty() {
+            Ok(())
+        } else {
+            Err(crate::error::PipelineError::Config(bad.join("; ")))
+        }
+    }
+
     /// The default config as JSON with every section, also those a stored config leaves out
     /// while they are at their default (`sunlight`): what `matloc map config --print-default`
     /// shows.

@@ -39,13 +39,13 @@ pub enum Method {
 }
 
 impl Method {
-    /// Every method: the paper's table order, then `structure`.
+    /// Every method: the default (`structure`) first, then the paper's table order.
     pub const ALL: [Method; 5] = [
+        Method::Structure,
         Method::Matloc,
         Method::RgbKeypoints,
         Method::CurriculumInerf,
         Method::Inerf,
-        Method::Structure,
     ];
 
     /// The method `localize`, `serve` and `eval` use unless told otherwise.

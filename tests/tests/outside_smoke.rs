@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_data::{Split, read_dataset};
 use matloc_pipeline::LoadedMap;
-use matloc_pipeline::build::{MapConfig, build_map};
+use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
 
 fn fixture() -> PathBuf {
@@ -53,8 +53,19 @@ fn a_path_traced_survey_without_depth_builds_and_localizes() {
     let map_dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("outside_smoke_map");
     let _ = std::fs::remove_dir_all(&map_dir);
     let t = std::time::Instant::now();
-    build_map(&survey, &map_dir, &smoke_config(), &mut |_| {}).expect("map build");
+    let mut finished = Vec::new();
+    build_map(&survey, &map_dir, &smoke_config(), &mut |e| {
+        if let BuildEvent::StageFinished { name, .. } = e {
+            finished.push(name.clone());
+        }
+    })
+    .expect("map build");
     eprintln!("map built in {:.0} s", t.elapsed().as_secs_f64());
+    // A fresh build reports each stage once (never also as "done earlier").
+    let mut unique = finished.clone();
+    unique.sort();
+    unique.dedup();
+    assert_eq!(unique.len(), finished.len(), "{finished:?}");
     let surface: serde_json::Value =
         serde_json::from_slice(&std::fs::read(map_dir.join("surface.json")).unwrap()).unwrap();
     assert_eq!(surface["plan"]["kind"], "triangulated", "{surface}");

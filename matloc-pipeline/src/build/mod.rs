@@ -76,8 +76,9 @@ pub fn build_map_with(
     map.save()?;
     // All sub-NeRFs first: `parallel_blocks` of them train side by side.
     nerf::run(&dataset, &partition, &all, &mut map, config, progress)?;
+    // Each stage reports once: the NeRFs above, the rest of each block here.
     for &b in &all {
-        build_block(&dataset, &partition, b, &mut map, config, progress)?;
+        block_after_nerf(&dataset, &partition, b, &mut map, config, progress)?;
     }
     finish_map(&dataset, &partition, &mut map, config, progress)?;
     tracing::info!(out = %out.display(), blocks = partition.blocks.len(), "map complete");
@@ -118,6 +119,7 @@ pub fn plan_map_with(
     progress: &mut dyn FnMut(&BuildEvent),
 ) -> Result<Planned, PipelineError> {
     tracing::info!(out = %out.display(), frames = dataset.frames.len(), "planning map");
+    config.validate()?;
     // Physically impossible intrinsics or poses stop the build before anything is written.
     let implausible = matloc_data::summary::plausibility(dataset);
     if !implausible.is_empty() {
@@ -175,6 +177,18 @@ pub fn build_block(
     progress: &mut dyn FnMut(&BuildEvent),
 ) -> Result<(), PipelineError> {
     nerf::run(dataset, partition, &[b], map, config, progress)?;
+    block_after_nerf(dataset, partition, b, map, config, progress)
+}
+
+/// Block `b`'s stages after its sub-NeRF: pairs, encoder, selection.
+fn block_after_nerf(
+    dataset: &Dataset,
+    partition: &Partition,
+    b: usize,
+    map: &mut MapDir,
+    config: &MapConfig,
+    progress: &mut dyn FnMut(&BuildEvent),
+) -> Result<(), PipelineError> {
     let (fit, _) = common::views_of_block(dataset, partition, b, config.calibration.holdout_every);
     if fit.is_empty() {
         return Err(PipelineError::Config(format!(

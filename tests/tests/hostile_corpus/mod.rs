@@ -806,8 +806,8 @@ fn colmap_text_cases(g: &mut Gen, base: &Base) {
         out.join("\n") + "\n"
     };
     let point_edits: Vec<(&str, String, bool)> = vec![
-        ("NaN x", pedit(1, "nan"), false),
-        ("inf z", pedit(3, "inf"), false),
+        ("NaN x", pedit(1, "nan"), true),
+        ("inf z", pedit(3, "inf"), true),
         ("colour 300", pedit(4, "300"), true),
         ("track to a missing image", pedit(8, "77"), false),
         (
@@ -910,6 +910,10 @@ fn colmap_binary_cases(g: &mut Gen, base: &Base) {
         );
     };
     run(g, "valid".into(), 0, files[0].1.clone(), false);
+    // The first point's x (after the count and its id) not a number.
+    let mut nan = files[2].1.clone();
+    nan[16..24].copy_from_slice(&f64::NAN.to_le_bytes());
+    run(g, "NaN x".into(), 2, nan, true);
     for (which, (name, bytes)) in files.iter().enumerate() {
         for cut in cuts(bytes.len(), 8).into_iter().skip(1) {
             let must = *name != "points3D.bin";
