@@ -20,6 +20,15 @@ import sys
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from colmap_peer import (  # noqa: E402  (the peer's pose helpers, shared)
+    cam_from_world_from_opengl,
+    camera_center,
+    mat_mul,
+    mat_t,
+    rot_from_quat,
+    rotation_angle_deg,
+)
 ROOT = os.path.dirname(os.path.dirname(HERE))
 SETS = ["same", "second", "novel"]
 METHODS = ["structure", "matloc", "rgb-keypoints"]
@@ -62,35 +71,18 @@ def render(scene, out, width, height, samples, smoke=False):
 # Poses and errors
 
 
-def quat_to_matrix(q):
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-
-
 def gt_from_transform(m):
     """(R_cam_from_world, camera centre) from an OpenGL camera-to-world 4x4."""
-    c2w = [[m[r][c] * (1 if c == 0 or c == 3 else -1) for c in range(4)] for r in range(3)]
-    r_wc = [[c2w[r][c] for c in range(3)] for r in range(3)]
-    r_cw = [[r_wc[c][r] for c in range(3)] for r in range(3)]
-    return r_cw, [c2w[0][3], c2w[1][3], c2w[2][3]]
+    r, t = cam_from_world_from_opengl(m)
+    return r, camera_center(r, t)
 
 
 def pose_errors(qvec, tvec, gt):
     """Translation (camera centres, m) and rotation (degrees) errors of a COLMAP pose."""
-    r_est = quat_to_matrix(qvec)
-    centre = [-sum(r_est[k][i] * tvec[k] for k in range(3)) for i in range(3)]
+    r_est = rot_from_quat(qvec)
     r_gt, c_gt = gt
-    t_err = math.dist(centre, c_gt)
-    # trace(R_est R_gt^T)
-    tr = sum(r_est[i][k] * r_gt[i][k] for i in range(3) for k in range(3))
-    r_err = math.degrees(math.acos(max(-1.0, min(1.0, (tr - 1) / 2))))
-    return t_err, r_err
+    t_err = math.dist(camera_center(r_est, tvec), c_gt)
+    return t_err, rotation_angle_deg(mat_mul(r_est, mat_t(r_gt)))
 
 
 def query_truth(query_dir):
@@ -333,7 +325,10 @@ def matloc_bin():
 
 def cmd_all(args):
     scenes = args.scenes.split(",")
-    bin_path = matloc_bin()
+    if args.no_build:
+        bin_path = os.path.join(ROOT, "target", "release", "matloc")
+    else:
+        bin_path = matloc_bin()
     for scene in scenes:
         d = os.path.join(args.work, scene)
         if not os.path.exists(os.path.join(d, "scene.json")):
@@ -398,6 +393,7 @@ def main():
     a.add_argument("--width", type=int, default=320)
     a.add_argument("--height", type=int, default=240)
     a.add_argument("--samples", type=int, default=32)
+    a.add_argument("--no-build", action="store_true", help="use target/release/matloc as it is")
     a.set_defaults(fn=cmd_all)
     t = sub.add_parser("table")
     t.add_argument("--work", default=default_work)

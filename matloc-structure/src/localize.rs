@@ -47,6 +47,12 @@ pub struct StructureOptions {
     /// map's top-k when that is more): a refused start costs a few hundredths of a second,
     /// and a photo from another day can rank the right place below the first three.
     pub place_hypotheses: usize,
+    /// When every start is refused: groups of training images chosen by what they share with
+    /// the query (its descriptors matched against every training image, each image scored by
+    /// its matches), tried as further starts; 0 = off. A viewpoint the survey never flew puts
+    /// every place hypothesis on a survey pose that looks elsewhere, and matching against the
+    /// images nearest those finds too few points.
+    pub retrieval: usize,
     /// Solve again from the images nearest the first estimate.
     pub second_pass: bool,
     /// Unsharp-mask amount of the query's gray image before detection (σ = 1 px; 0 = off):
@@ -73,6 +79,7 @@ impl Default for StructureOptions {
             min_inliers: 15,
             max_log10_nfa: -2.0,
             place_hypotheses: 30,
+            retrieval: 0,
             second_pass: true,
             query_sharpen: 1.0,
             align: AlignOptions::default(),
@@ -181,8 +188,31 @@ pub fn localize(
     let mut reports = Vec::new();
     let mut best: Option<Solve> = None;
     let mut aligned_inliers = 0;
-    for (i, start) in starts.iter().enumerate() {
-        let mut first = solve_from(map, &query, start, i, options, rng, &mut time);
+    let mut attempts: Vec<Attempt> = starts.iter().map(Attempt::Start).collect();
+    let mut retrieved = false;
+    let mut i = 0;
+    while i < attempts.len() {
+        let mut first = match &attempts[i] {
+            Attempt::Start(start) => solve_from(map, &query, start, i, options, rng, &mut time),
+            Attempt::Images(images) => {
+                let t = Instant::now();
+                let per_image = images
+                    .par_iter()
+                    .map(|&im| match_image(map, &query, im, options))
+                    .collect();
+                time.matching += t.elapsed().as_secs_f64();
+                solve_images(
+                    map,
+                    &query,
+                    images.clone(),
+                    per_image,
+                    i,
+                    options,
+                    rng,
+                    &mut time,
+                )
+            }
+        };
         // A pose the survey never looked at is a consensus with the wrong part of the scene:
         // on `building` one such pose had 16 inliers at NFA 10^-14, 54 m and 83° off.
         if first.report.accepted
@@ -193,6 +223,7 @@ pub fn localize(
             first.report.unseen = true;
         }
         reports.push(first.report.clone());
+        i += 1;
         if !first.report.accepted {
             if best
                 .as_ref()
@@ -200,13 +231,25 @@ pub fn localize(
             {
                 best = Some(first);
             }
+            // Every start refused: the images that share most with the query, once.
+            if i == attempts.len() && options.retrieval > 0 && !retrieved {
+                retrieved = true;
+                let t = Instant::now();
+                attempts.extend(
+                    retrieve(map, &query, options)
+                        .into_iter()
+                        .map(Attempt::Images),
+                );
+                time.matching += t.elapsed().as_secs_f64();
+            }
             continue;
         }
+        let index = i - 1;
         let mut chosen = first;
         if options.second_pass
             && let Some(pose) = chosen.pose
         {
-            let again = solve_from(map, &query, &pose, i, options, rng, &mut time);
+            let again = solve_from(map, &query, &pose, index, options, rng, &mut time);
             reports.push(again.report.clone());
             if again.report.accepted && again.report.inliers >= chosen.report.inliers {
                 chosen = again;
@@ -227,7 +270,7 @@ pub fn localize(
             );
             time.align += t.elapsed().as_secs_f64();
             if let Some(matches) = refined {
-                let again = solve_matches(matches, i, options, camera, rng, &mut time);
+                let again = solve_matches(matches, index, options, camera, rng, &mut time);
                 // The pose only: acceptance, inliers and false alarms stay those of the
                 // descriptor matches (the tracked points were found with this pose, so
                 // their consensus says nothing about whether it is right).
@@ -255,6 +298,13 @@ pub fn localize(
         aligned_inliers,
         stage_seconds: seconds,
     })
+}
+
+/// What a localization attempt solves from: a start pose (the images nearest it), or a group
+/// of training images retrieved by what they share with the query.
+enum Attempt<'a> {
+    Start(&'a Pose),
+    Images(Vec<usize>),
 }
 
 struct Query<'a> {
@@ -299,18 +349,77 @@ fn solve_from(
 ) -> Solve {
     let t = Instant::now();
     let images = nearest_images(map, start, options);
-    // Per query keypoint, its closest match (Hamming distance, point, image, observation)
-    // over the images.
     let per_image: Vec<Vec<(usize, Candidate)>> = images
         .par_iter()
-        .map(|&i| {
-            let im = &map.images()[i];
-            match_descriptors(query.descriptors, &im.descriptor, &options.matching)
-                .into_iter()
-                .map(|m| (m.a, (m.distance, im.point[m.b], i as u32, m.b as u32)))
-                .collect()
-        })
+        .map(|&i| match_image(map, query, i, options))
         .collect();
+    time.matching += t.elapsed().as_secs_f64();
+    solve_images(map, query, images, per_image, index, options, rng, time)
+}
+
+/// The query's descriptor matches with training image `i`: (query keypoint, candidate).
+fn match_image(
+    map: &StructureMap,
+    query: &Query<'_>,
+    i: usize,
+    options: &StructureOptions,
+) -> Vec<(usize, Candidate)> {
+    let im = &map.images()[i];
+    match_descriptors(query.descriptors, &im.descriptor, &options.matching)
+        .into_iter()
+        .map(|m| (m.a, (m.distance, im.point[m.b], i as u32, m.b as u32)))
+        .collect()
+}
+
+/// Groups of training images to solve from, chosen by what they share with the query: every
+/// image scored by its descriptor matches with the query; group `g` is the `g`-th best image
+/// with the best-scored images looking within `max_view_angle_deg` of it, `neighbours` in
+/// all, for `options.retrieval` groups whose seeds are not already in an earlier group.
+fn retrieve(map: &StructureMap, query: &Query<'_>, options: &StructureOptions) -> Vec<Vec<usize>> {
+    let votes: Vec<usize> = (0..map.images().len())
+        .into_par_iter()
+        .map(|i| match_image(map, query, i, options).len())
+        .collect();
+    let mut ranked: Vec<usize> = (0..votes.len()).collect();
+    ranked.sort_by(|&a, &b| votes[b].cmp(&votes[a]).then(a.cmp(&b)));
+    let cos_max = options.max_view_angle_deg.to_radians().cos();
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for &seed in &ranked {
+        if groups.len() >= options.retrieval {
+            break;
+        }
+        if votes[seed] == 0 || groups.iter().any(|g| g.contains(&seed)) {
+            continue;
+        }
+        let dir = map.images()[seed].viewing_direction();
+        let mut group = vec![seed];
+        group.extend(
+            ranked
+                .iter()
+                .copied()
+                .filter(|&j| j != seed && votes[j] > 0)
+                .filter(|&j| map.images()[j].viewing_direction().dot(&dir) >= cos_max)
+                .take(options.neighbours.saturating_sub(1)),
+        );
+        groups.push(group);
+    }
+    groups
+}
+
+/// Solves from the matches of `images` (`per_image`, in the same order).
+#[allow(clippy::too_many_arguments)]
+fn solve_images(
+    map: &StructureMap,
+    query: &Query<'_>,
+    images: Vec<usize>,
+    per_image: Vec<Vec<(usize, Candidate)>>,
+    index: usize,
+    options: &StructureOptions,
+    rng: &mut dyn RngCore,
+    time: &mut Timer,
+) -> Solve {
+    // Per query keypoint, its closest match (Hamming distance, point, image, observation)
+    // over the images.
     let mut best: Vec<Option<Candidate>> = vec![None; query.keypoints.len()];
     for (q, c) in per_image.into_iter().flatten() {
         if best[q].is_none_or(|(bd, ..)| c.0 < bd) {
@@ -330,7 +439,6 @@ fn solve_from(
             matches.point.push(*p);
         }
     }
-    time.matching += t.elapsed().as_secs_f64();
     let mut solve = solve_matches(matches, index, options, query.camera, rng, time);
     solve.report.images = images.len();
     solve.images = images;

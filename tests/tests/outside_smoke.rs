@@ -10,6 +10,8 @@
 
 use std::path::{Path, PathBuf};
 
+mod map_sizes;
+
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_data::{Split, read_dataset};
 use matloc_pipeline::LoadedMap;
@@ -25,12 +27,7 @@ fn smoke_config() -> MapConfig {
     let mut c = MapConfig::default();
     c.nerf.steps = 200;
     c.nerf.checkpoint_every = 100;
-    c.nerf.model_overrides = serde_json::json!({
-        "field": {"log2_table_size": 15, "max_resolution": 512},
-        "train": {"batch_rays": 1024, "march": {"steps": 128, "max_samples": 24},
-                  "occupancy_warmup_steps": 32},
-        "render": {"march": {"steps": 128}},
-    });
+    c.nerf.model_overrides = map_sizes::small_nerf_overrides();
     c.encoder.train.steps = 100;
     c.encoder.train.head_phase.steps = 200;
     c.place.train.epochs = 10;
