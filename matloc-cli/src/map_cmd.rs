@@ -277,7 +277,7 @@ pub fn read_config(path: &Path) -> Result<MapConfig> {
     })?;
     config
         .validate()
-        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        .map_err(|e| anyhow::anyhow!("map config {}: {e}", path.display()))?;
     Ok(config)
 }
 

@@ -54,7 +54,8 @@ impl MapConfig {
     /// render/match pass, a matching window outside `[0, 1]`, place training without epochs.
     /// The build's plan step calls it before anything is written (and so does the CLI when it
     /// reads a config file). `localize.render_steps = 0` is valid: each model's own setting.
-    pub fn validate(&self) -> Result<(), crate::error::PipelineError> {
+    /// The error is every offending field, `; `-separated.
+    pub fn validate(&self) -> Result<(), String> {
         let mut bad = Vec::new();
         let mut check = |ok: bool, field: &str, value: String, bound: &str| {
             if !ok {
@@ -101,7 +102,7 @@ impl MapConfig {
         if bad.is_empty() {
             Ok(())
         } else {
-            Err(crate::error::PipelineError::Config(bad.join("; ")))
+            Err(bad.join("; "))
         }
     }
 

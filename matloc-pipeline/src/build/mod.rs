@@ -119,7 +119,7 @@ pub fn plan_map_with(
     progress: &mut dyn FnMut(&BuildEvent),
 ) -> Result<Planned, PipelineError> {
     tracing::info!(out = %out.display(), frames = dataset.frames.len(), "planning map");
-    config.validate()?;
+    config.validate().map_err(PipelineError::Config)?;
     // Physically impossible intrinsics or poses stop the build before anything is written.
     let implausible = matloc_data::summary::plausibility(dataset);
     if !implausible.is_empty() {
