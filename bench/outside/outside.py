@@ -295,8 +295,8 @@ def costs(work, scenes):
         with open(os.path.join(d, "scene.json")) as f:
             sc = json.load(f)
         build = {"wall_seconds": float("nan"), "cpu_seconds": float("nan")}
-        if os.path.exists(os.path.join(d, "map", "build.done")):
-            with open(os.path.join(d, "map", "build.done")) as f:
+        if os.path.exists(os.path.join(d, "map-build.json")):
+            with open(os.path.join(d, "map-build.json")) as f:
                 build = json.load(f)
         size = sum(os.path.getsize(os.path.join(r, n)) for r, _, ns in os.walk(os.path.join(d, "map")) for n in ns)
         survey = {}
@@ -337,10 +337,10 @@ def cmd_all(args):
             render(scene, d, args.width, args.height, args.samples)
         if not os.path.exists(os.path.join(d, "queries", "second", "transforms_test.json")):
             run([sys.executable, os.path.join(HERE, "post.py"), d])
-        if not os.path.exists(os.path.join(d, "map", "build.done")):
+        if not os.path.exists(os.path.join(d, "map-build.json")):
             wall, cpu = run([bin_path, "--quiet", "map", "build", "--data", os.path.join(d, "survey"),
                              "--out", os.path.join(d, "map"), "--config", os.path.join(HERE, "map-config.json")])
-            write_json(os.path.join(d, "map", "build.done"), {"wall_seconds": wall, "cpu_seconds": cpu})
+            write_json(os.path.join(d, "map-build.json"), {"wall_seconds": wall, "cpu_seconds": cpu})
         for method in METHODS:
             overhead = eval_overhead(bin_path, d, method)
             for qset in SETS:
