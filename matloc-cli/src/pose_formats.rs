@@ -201,7 +201,11 @@ pub fn omission(format: PoseFormat, record: &QueryRecord) -> Option<String> {
         QueryRecord::Failed { .. } => "it failed".to_string(),
         QueryRecord::Done(l) if l.result.cam_from_world.is_none() => "not localized".to_string(),
         QueryRecord::Done(l) => match format {
-            PoseFormat::Hloc if l.result.name.chars().any(char::is_whitespace) => {
+            PoseFormat::Hloc | PoseFormat::Colmap
+                if l.result.name.chars().any(char::is_whitespace) =>
+            {
+                // Both formats separate fields by spaces; COLMAP's and pycolmap's text readers
+                // cut a name at its first space, so it would name another file.
                 "its name contains whitespace".to_string()
             }
             PoseFormat::Colmap if l.camera.distortion.k3 != 0.0 => {
@@ -332,6 +336,9 @@ pub fn render_text(
 pub fn colmap_model(records: &[QueryRecord], world: &OutputWorld) -> ColmapModel {
     let mut model = ColmapModel::default();
     for r in records {
+        if omission(PoseFormat::Colmap, r).is_some() {
+            continue;
+        }
         let (QueryRecord::Done(l), Some(p)) = (r, r.cam_from_world()) else {
             continue;
         };
@@ -711,6 +718,19 @@ mod tests {
         assert_eq!(omission(PoseFormat::Tum, &recs[4]).unwrap(), "it failed");
         assert!(omission(PoseFormat::Jsonl, &recs[4]).is_none());
         assert!(omission(PoseFormat::Hloc, &recs[0]).is_none());
+        // A name with a space is left out of COLMAP's text model too, not cut by its readers.
+        let mut spaced = records(dir.path());
+        if let QueryRecord::Done(l) = &mut spaced[0] {
+            l.result.name = "edge/my query.png".into();
+        }
+        assert_eq!(
+            omission(PoseFormat::Colmap, &spaced[0]).unwrap(),
+            "its name contains whitespace"
+        );
+        let world = OutputWorld::new(WorldArg::Data, None).unwrap();
+        let model = colmap_model(&spaced, &world);
+        assert!(model.images.values().all(|i| !i.name.contains(' ')));
+        assert_eq!(model.images.len(), 2);
         assert_eq!(
             summary(&recs),
             "5 queries: 3 localized, 1 not localized, 1 failed"
