@@ -331,23 +331,29 @@ fn map_config_default_parses_back_and_unknown_keys_are_named() {
             "max_iters",
         ),
     ] {
-        let path = dir.path().join("config.json");
-        std::fs::write(&path, config.to_string()).unwrap();
-        let o = matloc(&[
-            "map",
-            "build",
-            "--data",
-            dir.path().join("no-data").to_str().unwrap(),
-            "--out",
-            dir.path().join("map").to_str().unwrap(),
-            "--config",
-            path.to_str().unwrap(),
-        ]);
+        let o = build_with_config(dir.path(), &config);
         assert!(!o.status.success());
         let t = text(&o);
         assert!(t.contains(&format!("unknown field `{key}`")), "{t}");
         assert!(!dir.path().join("map").exists());
     }
+}
+
+/// `matloc map build` of a dataset that does not exist, with `config` as DIR/config.json
+/// (the config is read first); the map would go to DIR/map.
+fn build_with_config(dir: &Path, config: &serde_json::Value) -> std::process::Output {
+    let path = dir.join("config.json");
+    std::fs::write(&path, config.to_string()).unwrap();
+    matloc(&[
+        "map",
+        "build",
+        "--data",
+        dir.join("no-data").to_str().unwrap(),
+        "--out",
+        dir.join("map").to_str().unwrap(),
+        "--config",
+        path.to_str().unwrap(),
+    ])
 }
 
 /// Values no stage can run with are refused when the config file is read, naming the file,
@@ -367,18 +373,7 @@ fn impossible_config_values_are_named_when_the_file_is_read() {
         ),
         (serde_json::json!({"select": {"dims": 0}}), "select.dims"),
     ] {
-        let path = dir.path().join("config.json");
-        std::fs::write(&path, config.to_string()).unwrap();
-        let o = matloc(&[
-            "map",
-            "build",
-            "--data",
-            dir.path().join("no-data").to_str().unwrap(),
-            "--out",
-            dir.path().join("map").to_str().unwrap(),
-            "--config",
-            path.to_str().unwrap(),
-        ]);
+        let o = build_with_config(dir.path(), &config);
         assert_eq!(o.status.code(), Some(1));
         let t = text(&o);
         assert!(

@@ -192,26 +192,18 @@ pub fn localize(
     let mut retrieved = false;
     let mut i = 0;
     while i < attempts.len() {
-        let mut first = match &attempts[i] {
+        let mut first = match &mut attempts[i] {
             Attempt::Start(start) => solve_from(map, &query, start, i, options, rng, &mut time),
-            Attempt::Images(images) => {
-                let t = Instant::now();
-                let per_image = images
-                    .par_iter()
-                    .map(|&im| match_image(map, &query, im, options))
-                    .collect();
-                time.matching += t.elapsed().as_secs_f64();
-                solve_images(
-                    map,
-                    &query,
-                    images.clone(),
-                    per_image,
-                    i,
-                    options,
-                    rng,
-                    &mut time,
-                )
-            }
+            Attempt::Images(images, per_image) => solve_images(
+                map,
+                &query,
+                std::mem::take(images),
+                std::mem::take(per_image),
+                i,
+                options,
+                rng,
+                &mut time,
+            ),
         };
         // A pose the survey never looked at is a consensus with the wrong part of the scene:
         // on `building` one such pose had 16 inliers at NFA 10^-14, 54 m and 83° off.
@@ -238,7 +230,7 @@ pub fn localize(
                 attempts.extend(
                     retrieve(map, &query, options)
                         .into_iter()
-                        .map(Attempt::Images),
+                        .map(|(images, per_image)| Attempt::Images(images, per_image)),
                 );
                 time.matching += t.elapsed().as_secs_f64();
             }
@@ -304,7 +296,8 @@ pub fn localize(
 /// of training images retrieved by what they share with the query.
 enum Attempt<'a> {
     Start(&'a Pose),
-    Images(Vec<usize>),
+    /// The images and their matches with the query (made when they were ranked).
+    Images(Vec<usize>, ImageMatches),
 }
 
 struct Query<'a> {
@@ -337,6 +330,9 @@ fn nearest_images(map: &StructureMap, start: &Pose, options: &StructureOptions) 
 
 /// A query keypoint's match: (Hamming distance, point, training image, observation).
 type Candidate = (u32, u32, u32, u32);
+
+/// Per training image of a group, the query's matches with it: (query keypoint, candidate).
+type ImageMatches = Vec<Vec<(usize, Candidate)>>;
 
 fn solve_from(
     map: &StructureMap,
@@ -375,11 +371,16 @@ fn match_image(
 /// image scored by its descriptor matches with the query; group `g` is the `g`-th best image
 /// with the best-scored images looking within `max_view_angle_deg` of it, `neighbours` in
 /// all, for `options.retrieval` groups whose seeds are not already in an earlier group.
-fn retrieve(map: &StructureMap, query: &Query<'_>, options: &StructureOptions) -> Vec<Vec<usize>> {
-    let votes: Vec<usize> = (0..map.images().len())
+fn retrieve(
+    map: &StructureMap,
+    query: &Query<'_>,
+    options: &StructureOptions,
+) -> Vec<(Vec<usize>, ImageMatches)> {
+    let matches: ImageMatches = (0..map.images().len())
         .into_par_iter()
-        .map(|i| match_image(map, query, i, options).len())
+        .map(|i| match_image(map, query, i, options))
         .collect();
+    let votes: Vec<usize> = matches.iter().map(Vec::len).collect();
     let mut ranked: Vec<usize> = (0..votes.len()).collect();
     ranked.sort_by(|&a, &b| votes[b].cmp(&votes[a]).then(a.cmp(&b)));
     let cos_max = options.max_view_angle_deg.to_radians().cos();
@@ -404,6 +405,12 @@ fn retrieve(map: &StructureMap, query: &Query<'_>, options: &StructureOptions) -
         groups.push(group);
     }
     groups
+        .into_iter()
+        .map(|g| {
+            let per_image = g.iter().map(|&i| matches[i].clone()).collect();
+            (g, per_image)
+        })
+        .collect()
 }
 
 /// Solves from the matches of `images` (`per_image`, in the same order).
