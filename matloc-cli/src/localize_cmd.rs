@@ -15,8 +15,8 @@ use matloc_pipeline::methods::{Method, QueryResult, localize_with};
 
 use crate::method_options::MethodOptionsArgs;
 use crate::pose_formats::{
-    Localized, OutputWorld, PoseFormat, QueryRecord, WorldArg, header, omission, record_text,
-    summary, write_poses,
+    Localized, NamesOnce, OutputWorld, PoseFormat, QueryRecord, WorldArg, header, omission,
+    record_text, summary, write_poses,
 };
 use crate::queries::{
     Query, QuerySpec, load_query, parse_query_list, read_intrinsics, specs_from_paths,
@@ -207,6 +207,7 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
     }
 
     let stream = args.out.is_none();
+    let mut names = NamesOnce::default();
     if stream && let Some(h) = header(args.format) {
         out!("{h}")?;
     }
@@ -226,16 +227,23 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
         },
         |record| {
             // A failure has been logged already.
-            if let QueryRecord::Done(_) = record
-                && let Some(why) = omission(args.format, record)
-            {
+            let left_out = match record {
+                QueryRecord::Done(_) => {
+                    omission(args.format, record).or_else(|| names.later(args.format, record))
+                }
+                QueryRecord::Failed { .. } => None,
+            };
+            if let Some(why) = &left_out {
                 tracing::warn!(
                     query = record.name(),
                     "left out of the {} output: {why}",
                     args.format.name()
                 );
             }
-            if stream && let Some(text) = record_text(args.format, record, &world)? {
+            if stream
+                && left_out.is_none()
+                && let Some(text) = record_text(args.format, record, &world)?
+            {
                 out!("{text}")?;
             }
             Ok(())

@@ -2,6 +2,7 @@
 //! COLMAP text model (or its `images.txt` alone) and nerfstudio `transforms.json`. Writers take
 //! finished [`QueryRecord`]s; they neither read images nor localize.
 
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
@@ -217,6 +218,27 @@ pub fn omission(format: PoseFormat, record: &QueryRecord) -> Option<String> {
     Some(why)
 }
 
+/// COLMAP names each image once: of the queries given under one name, the first written
+/// is kept and the later ones are left out (`later` says why). Other formats keep every one.
+#[derive(Default)]
+pub struct NamesOnce {
+    seen: HashSet<String>,
+}
+
+impl NamesOnce {
+    /// Why `record` is left out of `format` because its name was written before, if it is
+    /// (only records that would be written count, so call it after [`omission`]).
+    pub fn later(&mut self, format: PoseFormat, record: &QueryRecord) -> Option<String> {
+        match record {
+            QueryRecord::Done(l) if format == PoseFormat::Colmap => {
+                (!self.seen.insert(l.result.name.clone()))
+                    .then(|| "its name was given by an earlier query".to_string())
+            }
+            _ => None,
+        }
+    }
+}
+
 /// `[w, x, y, z]` (w ≥ 0) and translation of `pose`, COLMAP's order.
 fn qvec_tvec(pose: &Pose) -> ([f64; 4], [f64; 3]) {
     colmap_from_cam_from_world(pose)
@@ -323,7 +345,11 @@ pub fn render_text(
     world: &OutputWorld,
 ) -> Result<String> {
     let mut s = header(format).unwrap_or_default().to_string();
+    let mut names = NamesOnce::default();
     for r in records {
+        if omission(format, r).is_none() && names.later(format, r).is_some() {
+            continue;
+        }
         if let Some(line) = record_text(format, r, world)? {
             s.push_str(&line);
         }
@@ -335,8 +361,10 @@ pub fn render_text(
 /// each query has its own camera (PINHOLE or OPENCV), and there are no points.
 pub fn colmap_model(records: &[QueryRecord], world: &OutputWorld) -> ColmapModel {
     let mut model = ColmapModel::default();
+    let mut names = NamesOnce::default();
     for r in records {
-        if omission(PoseFormat::Colmap, r).is_some() {
+        if omission(PoseFormat::Colmap, r).is_some() || names.later(PoseFormat::Colmap, r).is_some()
+        {
             continue;
         }
         let (QueryRecord::Done(l), Some(p)) = (r, r.cam_from_world()) else {
@@ -731,6 +759,18 @@ mod tests {
         let model = colmap_model(&spaced, &world);
         assert!(model.images.values().all(|i| !i.name.contains(' ')));
         assert_eq!(model.images.len(), 2);
+        // A name given twice: COLMAP gets the first query only, hloc both.
+        let mut twice = records(dir.path());
+        if let QueryRecord::Done(l) = &mut twice[3] {
+            l.result.name = "a.png".into();
+        }
+        let model = colmap_model(&twice, &world);
+        assert_eq!(model.images.len(), 2);
+        assert_eq!(model.images[&1].name, "a.png");
+        let text = render_text(PoseFormat::Colmap, &twice, &world).unwrap();
+        assert_eq!(text.lines().filter(|l| l.ends_with(" a.png")).count(), 1);
+        let text = render_text(PoseFormat::Hloc, &twice, &world).unwrap();
+        assert_eq!(text.lines().filter(|l| l.starts_with("a.png ")).count(), 2);
         assert_eq!(
             summary(&recs),
             "5 queries: 3 localized, 1 not localized, 1 failed"
