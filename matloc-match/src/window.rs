@@ -381,7 +381,7 @@ mod avx2 {
 /// against the same map values (their windows nearly coincide). Query rows are split into
 /// chunks, each with its own partial column table, merged at the end.
 ///
-/// At 80 × 60 against 80 × 60 cells and 47 dims (this VM, 2026-12-02): radius 64 px
+/// At 80 × 60 against 80 × 60 cells and 47 dims (2 cores, 2026-12-02): radius 64 px
 /// 15–19 ms against 31–38 ms for the previous per-pair kernel (gathered rows, one chain per
 /// pair), 32 px 7–8 against 8–10 ms; at 16 px the transposition makes it slower (3.4 against
 /// 2.7 ms). With the AVX2 folds (the `avx2` module; portable loop and vector kernel
