@@ -52,6 +52,146 @@ pub enum CameraError {
     },
 }
 
+/// Largest image side a real camera has, pixels (a 65 536-pixel side is beyond any survey
+/// camera; a size claiming more would have the pipeline allocate for it).
+pub const MAX_IMAGE_SIDE: u32 = 65_536;
+
+/// Narrowest and widest horizontal / vertical field of view of a real lens, degrees (a
+/// 0.5° telephoto to a 170° wide angle; fisheye models are not read).
+pub const FOV_RANGE_DEG: (f64, f64) = (0.5, 170.0);
+
+/// How far outside the image the principal point may lie, as a fraction of the image side on
+/// each border (a shifted sensor or a crop moves it; a quarter of the image is beyond both).
+pub const PRINCIPAL_POINT_MARGIN: f64 = 0.25;
+
+/// Largest magnitude of a tangential coefficient `p1`, `p2` (decentring of real lenses stays
+/// below 0.01).
+pub const MAX_TANGENTIAL: f64 = 0.1;
+
+/// Largest factor by which the lens distortion may change the ray radius at the image border
+/// (either way).
+pub const MAX_RADIUS_CHANGE: f64 = 4.0;
+
+/// Intrinsics that are well formed but no real camera has (see [`Camera::plausibility`]).
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum ImplausibleCamera {
+    /// An image side is zero or larger than [`MAX_IMAGE_SIDE`].
+    #[error("`{field}`: {value} px is outside 1..={max}")]
+    Side {
+        /// `width` or `height`.
+        field: &'static str,
+        /// Its value.
+        value: u32,
+        /// The largest side accepted.
+        max: u32,
+    },
+    /// A focal length gives a field of view outside [`FOV_RANGE_DEG`] (or is not finite or
+    /// positive).
+    #[error(
+        "`{field}`: {focal} px gives a {fov_deg:.3}° field of view over {side} px, outside {min_deg}–{max_deg}°"
+    )]
+    FieldOfView {
+        /// `fx` or `fy`.
+        field: &'static str,
+        /// The focal length, pixels.
+        focal: f64,
+        /// The image side it spans, pixels.
+        side: u32,
+        /// The field of view it gives, degrees.
+        fov_deg: f64,
+        /// Narrowest accepted, degrees.
+        min_deg: f64,
+        /// Widest accepted, degrees.
+        max_deg: f64,
+    },
+    /// The principal point lies farther outside the image than [`PRINCIPAL_POINT_MARGIN`]
+    /// (or is not finite).
+    #[error(
+        "`{field}`: {value} px lies more than {margin} × the image side ({side} px) outside it"
+    )]
+    PrincipalPoint {
+        /// `cx` or `cy`.
+        field: &'static str,
+        /// Its value, pixels.
+        value: f64,
+        /// The image side, pixels.
+        side: u32,
+        /// The margin accepted on each border, as a fraction of the side.
+        margin: f64,
+    },
+    /// A distortion coefficient is NaN or infinite.
+    #[error("`{field}`: {value} is not finite")]
+    NonFiniteDistortion {
+        /// `k1`, `k2`, `p1`, `p2` or `k3`.
+        field: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// A tangential coefficient is larger in magnitude than [`MAX_TANGENTIAL`].
+    #[error("`{field}`: {value} is outside ±{max}")]
+    Tangential {
+        /// `p1` or `p2`.
+        field: &'static str,
+        /// Its value.
+        value: f64,
+        /// The largest magnitude accepted.
+        max: f64,
+    },
+    /// The distortion cannot be inverted at a border pixel (or only by a ray on the far side of
+    /// the centre): the lens model folds over there.
+    #[error(
+        "`distortion`: cannot be inverted at pixel ({x}, {y}): the lens model folds over there"
+    )]
+    NotInvertible {
+        /// Pixel x.
+        x: f64,
+        /// Pixel y.
+        y: f64,
+    },
+    /// The distortion changes the ray radius at a border pixel by more than
+    /// [`MAX_RADIUS_CHANGE`] either way.
+    #[error(
+        "`distortion`: changes the ray radius at pixel ({x}, {y}) by {ratio:.3e}×, beyond {max}×"
+    )]
+    RadiusChange {
+        /// Pixel x.
+        x: f64,
+        /// Pixel y.
+        y: f64,
+        /// Undistorted over distorted radius.
+        ratio: f64,
+        /// The largest factor accepted.
+        max: f64,
+    },
+}
+
+impl ImplausibleCamera {
+    /// The offending field: `width`, `height`, `fx`, `fy`, `cx`, `cy`, `k1`…`k3`, `p1`, `p2`,
+    /// or `distortion` for the lens model as a whole.
+    pub fn field(&self) -> &'static str {
+        match self {
+            ImplausibleCamera::Side { field, .. }
+            | ImplausibleCamera::FieldOfView { field, .. }
+            | ImplausibleCamera::PrincipalPoint { field, .. }
+            | ImplausibleCamera::NonFiniteDistortion { field, .. }
+            | ImplausibleCamera::Tangential { field, .. } => field,
+            ImplausibleCamera::NotInvertible { .. } | ImplausibleCamera::RadiusChange { .. } => {
+                "distortion"
+            }
+        }
+    }
+
+    /// The message without the leading field name.
+    pub fn reason(&self) -> String {
+        let text = self.to_string();
+        let prefix = format!("`{}`: ", self.field());
+        match text.strip_prefix(&prefix) {
+            Some(rest) => rest.to_string(),
+            None => text,
+        }
+    }
+}
+
 /// Brown–Conrady lens distortion in OpenCV's parameterisation (normalised coordinates).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Distortion {
@@ -230,6 +370,129 @@ impl Camera {
             }
         }
         Ok(())
+    }
+
+    /// Every way the intrinsics break the bounds of a real camera, checked in constant time
+    /// (no allocation sized by the input): sides in `1..=`[`MAX_IMAGE_SIDE`] (nothing else is
+    /// checked when one is not); focal lengths finite, positive and giving a field of view
+    /// inside [`FOV_RANGE_DEG`] over their side; the principal point finite and within
+    /// [`PRINCIPAL_POINT_MARGIN`] of the image outside its borders; distortion coefficients
+    /// finite with `|p1|, |p2| ≤` [`MAX_TANGENTIAL`], and the lens invertible at the image's
+    /// corners and edge midpoints (by a ray on the same side of the centre), changing the ray
+    /// radius there by at most [`MAX_RADIUS_CHANGE`]×. Radial coefficients have no bound of
+    /// their own: what they do at the image border is bounded instead, whatever the field of
+    /// view. Empty = plausible.
+    pub fn plausibility(&self) -> Vec<ImplausibleCamera> {
+        let mut problems = Vec::new();
+        for (field, value) in [("width", self.width), ("height", self.height)] {
+            if value == 0 || value > MAX_IMAGE_SIDE {
+                problems.push(ImplausibleCamera::Side {
+                    field,
+                    value,
+                    max: MAX_IMAGE_SIDE,
+                });
+            }
+        }
+        if !problems.is_empty() {
+            return problems;
+        }
+        let (min_deg, max_deg) = FOV_RANGE_DEG;
+        for (field, focal, side) in [("fx", self.fx, self.width), ("fy", self.fy, self.height)] {
+            let fov_deg = 2.0 * (f64::from(side) / (2.0 * focal)).atan().to_degrees();
+            if !(focal.is_finite() && focal > 0.0 && (min_deg..=max_deg).contains(&fov_deg)) {
+                problems.push(ImplausibleCamera::FieldOfView {
+                    field,
+                    focal,
+                    side,
+                    fov_deg,
+                    min_deg,
+                    max_deg,
+                });
+            }
+        }
+        for (field, value, side) in [("cx", self.cx, self.width), ("cy", self.cy, self.height)] {
+            let s = f64::from(side);
+            let m = PRINCIPAL_POINT_MARGIN;
+            if !(value.is_finite() && value >= -m * s && value <= (1.0 + m) * s) {
+                problems.push(ImplausibleCamera::PrincipalPoint {
+                    field,
+                    value,
+                    side,
+                    margin: m,
+                });
+            }
+        }
+        let d = &self.distortion;
+        if d.is_none() {
+            return problems;
+        }
+        let mut coefficients_ok = true;
+        for (field, value) in [
+            ("k1", d.k1),
+            ("k2", d.k2),
+            ("p1", d.p1),
+            ("p2", d.p2),
+            ("k3", d.k3),
+        ] {
+            if !value.is_finite() {
+                problems.push(ImplausibleCamera::NonFiniteDistortion { field, value });
+                coefficients_ok = false;
+            } else if matches!(field, "p1" | "p2") && value.abs() > MAX_TANGENTIAL {
+                problems.push(ImplausibleCamera::Tangential {
+                    field,
+                    value,
+                    max: MAX_TANGENTIAL,
+                });
+                coefficients_ok = false;
+            }
+        }
+        if !coefficients_ok {
+            return problems;
+        }
+        let (w, h) = (f64::from(self.width), f64::from(self.height));
+        let probes = [
+            (0.0, 0.0),
+            (w, 0.0),
+            (0.0, h),
+            (w, h),
+            (w / 2.0, 0.0),
+            (w / 2.0, h),
+            (0.0, h / 2.0),
+            (w, h / 2.0),
+        ];
+        for (x, y) in probes {
+            let px = Point2::new(x, y);
+            let distorted_point = self.pixel_to_distorted_normalized(px);
+            let distorted = distorted_point.norm();
+            // A root on the far side of the centre is the polynomial folding over, not a ray.
+            let undistorted = self
+                .pixel_to_normalized(px)
+                .filter(|n| distorted <= 1e-9 || n.dot(&distorted_point) > 0.0);
+            match undistorted {
+                None => {
+                    problems.push(ImplausibleCamera::NotInvertible { x, y });
+                    break;
+                }
+                Some(n) => {
+                    let ratio = n.norm() / distorted;
+                    let max = MAX_RADIUS_CHANGE;
+                    if distorted > 1e-9 && !(1.0 / max..=max).contains(&ratio) {
+                        problems.push(ImplausibleCamera::RadiusChange { x, y, ratio, max });
+                        break;
+                    }
+                }
+            }
+        }
+        problems
+    }
+
+    /// The first way the intrinsics break the bounds of a real camera
+    /// ([`Camera::plausibility`]), if any.
+    pub fn check_plausible(&self) -> Result<(), ImplausibleCamera> {
+        match self.plausibility().into_iter().next() {
+            Some(problem) => Err(problem),
+            None => Ok(()),
+        }
     }
 
     /// True when the camera has no lens distortion.
@@ -497,6 +760,185 @@ mod tests {
         let half = cam.rescaled(320, 240).unwrap();
         assert_eq!(half.fx, 250.0);
         assert_eq!(half.cx, 160.0);
+    }
+
+    /// A camera built field by field (bypassing the constructor's checks), as readers do.
+    fn raw(width: u32, height: u32, f: f64, cx: f64, cy: f64, d: Distortion) -> Camera {
+        Camera {
+            width,
+            height,
+            fx: f,
+            fy: f,
+            cx,
+            cy,
+            distortion: d,
+        }
+    }
+
+    #[test]
+    fn implausible_intrinsics_name_the_field_and_the_bound() {
+        let ok = raw(160, 120, 150.0, 80.0, 60.0, Distortion::NONE);
+        assert_eq!(ok.check_plausible(), Ok(()));
+        let lens = |k1: f64, p1: f64| Distortion {
+            k1,
+            p1,
+            ..Distortion::NONE
+        };
+        let cases = [
+            (
+                raw(
+                    1_000_000_000,
+                    750_000_000,
+                    150.0,
+                    80.0,
+                    60.0,
+                    Distortion::NONE,
+                ),
+                "width",
+                "1..=65536",
+            ),
+            (
+                raw(160, 0, 150.0, 80.0, 60.0, Distortion::NONE),
+                "height",
+                "1..=65536",
+            ),
+            (
+                raw(160, 120, 1e308, 80.0, 60.0, Distortion::NONE),
+                "fx",
+                "0.5–170°",
+            ),
+            (
+                raw(160, 120, 1e-3, 80.0, 60.0, Distortion::NONE),
+                "fx",
+                "0.5–170°",
+            ),
+            (
+                raw(160, 120, -150.0, 80.0, 60.0, Distortion::NONE),
+                "fx",
+                "outside",
+            ),
+            (
+                raw(160, 120, 150.0, 1e308, 60.0, Distortion::NONE),
+                "cx",
+                "0.25 × the image side",
+            ),
+            (
+                raw(160, 120, 150.0, 80.0, -1e308, Distortion::NONE),
+                "cy",
+                "0.25 × the image side",
+            ),
+            (
+                raw(160, 120, 150.0, 80.0, 60.0, lens(1e30, 0.0)),
+                "distortion",
+                "beyond 4×",
+            ),
+            (
+                raw(160, 120, 150.0, 80.0, 60.0, lens(-0.3, 10.0)),
+                "p1",
+                "±0.1",
+            ),
+            (
+                raw(160, 120, 150.0, 80.0, 60.0, lens(f64::NAN, 0.0)),
+                "k1",
+                "not finite",
+            ),
+        ];
+        for (cam, field, bound) in cases {
+            let e = cam.check_plausible().unwrap_err();
+            assert_eq!(e.field(), field, "{e}");
+            let text = e.to_string();
+            assert!(
+                text.starts_with(&format!("`{field}`: ")) && text.contains(bound),
+                "{text}"
+            );
+            assert!(!e.reason().starts_with('`'), "{}", e.reason());
+        }
+        // Barrel distortion so strong that no ray reaches the corners.
+        let strong = raw(160, 120, 100.0, 80.0, 60.0, lens(-1.0, 0.0));
+        assert!(
+            strong
+                .plausibility()
+                .iter()
+                .any(|p| p.field() == "distortion"),
+            "{:?}",
+            strong.plausibility()
+        );
+        // Sides beyond the bound are the only problem reported (nothing else is checked).
+        let huge = raw(100_000, 0, f64::NAN, f64::NAN, 1.0, Distortion::NONE);
+        assert_eq!(huge.plausibility().len(), 2);
+    }
+
+    fn plausible_strategy() -> impl Strategy<Value = Camera> {
+        (
+            1u32..=MAX_IMAGE_SIDE,
+            1u32..=MAX_IMAGE_SIDE,
+            1.0..169.0f64,
+            -0.2..1.2f64,
+            -0.2..1.2f64,
+            -0.1..0.1f64,
+            -0.01..0.01f64,
+            -0.01..0.01f64,
+        )
+            .prop_map(|(w, h, hfov, u, v, k1, p1, p2)| {
+                let f = 0.5 * f64::from(w) / (0.5 * hfov.to_radians()).tan();
+                // fy keeps the vertical field of view inside the range too.
+                let fy = f.max(0.5 * f64::from(h) / (0.5 * 169f64.to_radians()).tan());
+                let fy = fy.min(0.5 * f64::from(h) / (0.5 * 1f64.to_radians()).tan());
+                // Lens distortion only where real lenses of that kind have it: up to a 90°
+                // field of view with the principal point near the centre.
+                let centred = (0.4..0.6).contains(&u) && (0.4..0.6).contains(&v);
+                let distortion = if hfov <= 90.0 && centred {
+                    Distortion {
+                        k1,
+                        p1,
+                        p2,
+                        ..Distortion::NONE
+                    }
+                } else {
+                    Distortion::NONE
+                };
+                Camera {
+                    width: w,
+                    height: h,
+                    fx: f,
+                    fy,
+                    cx: u * f64::from(w),
+                    cy: v * f64::from(h),
+                    distortion,
+                }
+            })
+            .prop_filter("lens must be invertible over the image", radially_monotonic)
+    }
+
+    proptest! {
+        #[test]
+        fn plausible_cameras_pass(cam in plausible_strategy()) {
+            prop_assert_eq!(cam.check_plausible(), Ok(()), "{:?}", cam);
+        }
+
+        #[test]
+        fn a_non_finite_parameter_fails(
+            cam in plausible_strategy(),
+            which in 0usize..9,
+            bad in prop_oneof![Just(f64::NAN), Just(f64::INFINITY), Just(f64::NEG_INFINITY)],
+        ) {
+            let mut cam = cam;
+            let d = &mut cam.distortion;
+            let (field, slot) = match which {
+                0 => ("fx", &mut cam.fx),
+                1 => ("fy", &mut cam.fy),
+                2 => ("cx", &mut cam.cx),
+                3 => ("cy", &mut cam.cy),
+                4 => ("k1", &mut d.k1),
+                5 => ("k2", &mut d.k2),
+                6 => ("p1", &mut d.p1),
+                7 => ("p2", &mut d.p2),
+                _ => ("k3", &mut d.k3),
+            };
+            *slot = bad;
+            let problems = cam.plausibility();
+            prop_assert!(problems.iter().any(|p| p.field() == field), "{:?}", problems);
+        }
     }
 
     #[test]

@@ -21,6 +21,6 @@ pub mod pose;
 pub mod shadow;
 pub mod subset;
 
-pub use camera::{Camera, CameraError, Distortion};
+pub use camera::{Camera, CameraError, Distortion, ImplausibleCamera};
 pub use image::{FeatureMap, Image, ImageError};
 pub use pose::{Pose, PoseError};

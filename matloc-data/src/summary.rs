@@ -587,107 +587,26 @@ impl fmt::Display for Problem {
     }
 }
 
-/// Largest image side accepted, pixels (a 65 536-pixel side is beyond any survey camera; a
-/// header claiming more would have the pipeline allocate for it).
-pub const MAX_IMAGE_SIDE: u32 = 65_536;
-
-/// Narrowest and widest horizontal / vertical field of view accepted, degrees.
-pub const FOV_RANGE_DEG: (f64, f64) = (0.5, 170.0);
+pub use matloc_core::camera::{FOV_RANGE_DEG, MAX_IMAGE_SIDE};
 
 /// Farthest camera centre from the world origin accepted, metres (ECEF coordinates fit).
 pub const MAX_SCENE_M: f64 = 1.0e7;
 
-/// Physically impossible intrinsics and poses, without touching the files: image sides in
-/// `1..=`[`MAX_IMAGE_SIDE`]; focal lengths giving a field of view inside [`FOV_RANGE_DEG`]; the
-/// principal point within a quarter of the image outside its borders; lens distortion
-/// invertible at the image's corners and edge midpoints and changing the ray radius there by
-/// at most 4×; finite rigid poses with the camera
-/// within [`MAX_SCENE_M`] of the origin. Empty = plausible.
+/// Physically impossible intrinsics and poses, without touching the files: the camera bounds
+/// of [`matloc_core::Camera::plausibility`] (image sides in `1..=`[`MAX_IMAGE_SIDE`], a field
+/// of view inside [`FOV_RANGE_DEG`], the principal point within a quarter of the image outside
+/// its borders, lens distortion invertible at the image's corners and edge midpoints and
+/// changing the ray radius there by at most 4×, `|p1|, |p2| ≤ 0.1`); finite rigid poses with
+/// the camera within [`MAX_SCENE_M`] of the origin. Empty = plausible.
 pub fn plausibility(dataset: &Dataset) -> Vec<Problem> {
     let mut problems = Vec::new();
     for (i, f) in dataset.frames.iter().enumerate() {
-        let c = &f.camera;
-        let mut bad = |field: &'static str, reason: String| {
+        for p in f.camera.plausibility() {
             problems.push(Problem::ImplausibleCamera {
                 frame: i,
-                field,
-                reason,
-            })
-        };
-        let mut sides_ok = true;
-        for (field, v) in [("width", c.width), ("height", c.height)] {
-            if v == 0 || v > MAX_IMAGE_SIDE {
-                bad(field, format!("{v} px is outside 1..={MAX_IMAGE_SIDE}"));
-                sides_ok = false;
-            }
-        }
-        if !sides_ok {
-            continue;
-        }
-        let (lo, hi) = FOV_RANGE_DEG;
-        for (field, focal, side) in [("fx", c.fx, c.width), ("fy", c.fy, c.height)] {
-            let side = f64::from(side);
-            let fov = 2.0 * (side / (2.0 * focal)).atan().to_degrees();
-            if !(focal.is_finite() && focal > 0.0 && (lo..=hi).contains(&fov)) {
-                bad(
-                    field,
-                    format!(
-                        "{focal} px gives a {fov:.3}° field of view over {side} px, outside {lo}–{hi}°"
-                    ),
-                );
-            }
-        }
-        for (field, p, side) in [("cx", c.cx, c.width), ("cy", c.cy, c.height)] {
-            let side = f64::from(side);
-            if !(p.is_finite() && p >= -0.25 * side && p <= 1.25 * side) {
-                bad(
-                    field,
-                    format!("{p} px lies more than a quarter of the image ({side} px) outside it"),
-                );
-            }
-        }
-        if !c.distortion.is_none() {
-            let (w, h) = (f64::from(c.width), f64::from(c.height));
-            let probes = [
-                (0.0, 0.0),
-                (w, 0.0),
-                (0.0, h),
-                (w, h),
-                (w / 2.0, 0.0),
-                (w / 2.0, h),
-                (0.0, h / 2.0),
-                (w, h / 2.0),
-            ];
-            // Invertible, and not moving a border pixel's ray by more than 4× in radius (a
-            // real lens, fisheye aside, stays far within that).
-            for (x, y) in probes {
-                let px = nalgebra::Point2::new(x, y);
-                let distorted = c.pixel_to_distorted_normalized(px).norm();
-                match c.pixel_to_normalized(px) {
-                    None => {
-                        bad(
-                            "distortion",
-                            format!(
-                                "cannot be inverted at pixel ({x}, {y}): the lens model folds over there"
-                            ),
-                        );
-                        break;
-                    }
-                    Some(n)
-                        if distorted > 1e-9 && !(0.25..=4.0).contains(&(n.norm() / distorted)) =>
-                    {
-                        bad(
-                            "distortion",
-                            format!(
-                                "changes the ray radius at pixel ({x}, {y}) by {:.3e}×, beyond 4×",
-                                n.norm() / distorted
-                            ),
-                        );
-                        break;
-                    }
-                    Some(_) => {}
-                }
-            }
+                field: p.field(),
+                reason: p.reason(),
+            });
         }
         let centre = f.center();
         let finite = f
