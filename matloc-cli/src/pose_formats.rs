@@ -724,7 +724,9 @@ mod tests {
             assert_eq!(ds.frames.len(), 3);
             assert_eq!(ds.metadata.applied_transform, world.applied_transform());
             for (f, (wn, wp)) in ds.frames.iter().zip(&want) {
-                assert_eq!(ds.image_path(f), dir.path().join(wn));
+                // Relative to the file, one directory below the images.
+                assert_eq!(f.image_path, Path::new("..").join(wn));
+                assert_eq!(ds.root, out);
                 assert_same(&f.cam_from_world, wp);
                 assert_eq!(
                     f.camera,

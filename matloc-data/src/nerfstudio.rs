@@ -726,7 +726,11 @@ pub fn cam_from_world_from_original(
 ///
 /// `path` is the file to write when it ends in `.json`, else a directory (created if needed)
 /// that receives `transforms.json`. Frame paths are written as stored when the file lands in
-/// [`Dataset::root`], otherwise as absolute paths so they still resolve.
+/// [`Dataset::root`], otherwise relative to the written file's directory (with `..` where
+/// needed), so the file and the images can move together; absolute only where no relative
+/// path exists (another drive). Intrinsics shared by every frame are written once at the top
+/// level (as `ns-process-data` does), else per frame. A split list is written when it names a
+/// frame: a file of test frames has `test_filenames` and no empty `train_filenames`.
 pub fn write_nerfstudio(dataset: &Dataset, path: &Path) -> Result<(), NerfstudioError> {
     let is_file = path
         .extension()
@@ -785,13 +789,13 @@ fn to_json(dataset: &Dataset, target: &Path, out_dir: &Path) -> Result<Value, Ne
         let rows: Vec<Value> = (0..4)
             .map(|r| Value::from((0..4).map(|c| m[(r, c)]).collect::<Vec<f64>>()))
             .collect();
-        let file_path = path_for_json(&dataset.root, &frame.image_path, same_dir)
+        let file_path = path_for_json(&dataset.root, &frame.image_path, out_dir, same_dir)
             .ok_or_else(|| unwritable(i, "image path is not valid UTF-8".into()))?;
         let mut fo = Map::new();
         fo.insert("file_path".into(), Value::from(file_path.clone()));
         fo.insert("transform_matrix".into(), Value::from(rows));
         if let Some(d) = &frame.depth_path {
-            let d = path_for_json(&dataset.root, d, same_dir)
+            let d = path_for_json(&dataset.root, d, out_dir, same_dir)
                 .ok_or_else(|| unwritable(i, "depth path is not valid UTF-8".into()))?;
             fo.insert("depth_file_path".into(), Value::from(d));
         }
@@ -805,13 +809,13 @@ fn to_json(dataset: &Dataset, target: &Path, out_dir: &Path) -> Result<Value, Ne
     }
     top.insert("frames".into(), Value::from(frames));
     for (_, key, list) in lists {
-        top.insert(key.into(), Value::from(list));
+        if !list.is_empty() {
+            top.insert(key.into(), Value::from(list));
+        }
     }
     if let Some(PointSource::Ply { path }) = &dataset.points {
-        // Relative to the written file when the cloud lies below it, else as given.
-        let rel = path.strip_prefix(out_dir).unwrap_or(path);
-        let rel = rel
-            .to_str()
+        // Relative to the written file, as the frames.
+        let rel = path_for_json(Path::new(""), path, out_dir, false)
             .ok_or_else(|| unwritable(0, "ply_file_path is not valid UTF-8".into()))?;
         top.insert("ply_file_path".into(), Value::from(rel));
     }
@@ -875,19 +879,102 @@ fn same_directory(a: &Path, b: &Path) -> bool {
 }
 
 /// A frame path as written in JSON: unchanged when the file lands in the dataset root,
-/// otherwise absolute. `None` for non-UTF-8 paths.
-fn path_for_json(root: &Path, p: &Path, same_dir: bool) -> Option<String> {
-    let p = if p.is_absolute() || same_dir {
+/// otherwise relative to `out_dir` (absolute where no relative path exists). `None` for
+/// non-UTF-8 paths.
+fn path_for_json(root: &Path, p: &Path, out_dir: &Path, same_dir: bool) -> Option<String> {
+    let p = if same_dir && !p.is_absolute() {
         p.to_path_buf()
     } else {
-        absolute(root).map_or_else(|| root.join(p), |r| r.join(p))
+        let full = if p.is_absolute() {
+            p.to_path_buf()
+        } else {
+            absolute(root).map_or_else(|| root.join(p), |r| r.join(p))
+        };
+        let full = absolute(&full).unwrap_or(full);
+        absolute(out_dir)
+            .and_then(|base| relative_path(&base, &full))
+            .unwrap_or(full)
     };
     p.to_str().map(str::to_owned)
+}
+
+/// `target` relative to the directory `base`, both absolute and free of `.`/`..` components;
+/// `None` when they share no root (another drive).
+fn relative_path(base: &Path, target: &Path) -> Option<PathBuf> {
+    let (b, t) = (lexical_components(base)?, lexical_components(target)?);
+    if root_of(&b) != root_of(&t) || root_of(&b).is_empty() {
+        return None;
+    }
+    let common = b.iter().zip(&t).take_while(|(x, y)| x == y).count();
+    let mut rel = PathBuf::new();
+    for _ in common..b.len() {
+        rel.push("..");
+    }
+    for c in &t[common..] {
+        rel.push(c.as_os_str());
+    }
+    Some(rel)
+}
+
+/// `p`'s components with `.` dropped and `..` applied; `None` when `..` climbs above the root.
+fn lexical_components(p: &Path) -> Option<Vec<Component<'_>>> {
+    let mut out: Vec<Component<'_>> = Vec::new();
+    for c in p.components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir => {
+                if matches!(out.last(), Some(Component::Normal(_))) {
+                    out.pop();
+                } else {
+                    return None;
+                }
+            }
+            c => out.push(c),
+        }
+    }
+    Some(out)
+}
+
+/// The leading prefix and root components of a path.
+fn root_of<'a>(components: &[Component<'a>]) -> Vec<Component<'a>> {
+    components
+        .iter()
+        .take_while(|c| matches!(c, Component::Prefix(_) | Component::RootDir))
+        .copied()
+        .collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    proptest::proptest! {
+        #[test]
+        fn a_relative_path_leads_from_base_to_target(
+            base in proptest::collection::vec("[a-c]{1,2}", 0..5),
+            target in proptest::collection::vec("[a-c]{1,2}", 0..5),
+        ) {
+            let abs = |v: &[String]| v.iter().fold(PathBuf::from("/"), |p, c| p.join(c));
+            let (b, t) = (abs(&base), abs(&target));
+            let rel = relative_path(&b, &t).unwrap();
+            proptest::prop_assert!(rel.is_relative());
+            let joined = b.join(&rel);
+            proptest::prop_assert_eq!(
+                lexical_components(&joined).unwrap(),
+                lexical_components(&t).unwrap()
+            );
+        }
+    }
+
+    #[test]
+    fn no_relative_path_without_a_shared_root() {
+        assert!(relative_path(Path::new("/a"), Path::new("b")).is_none());
+        assert!(relative_path(Path::new("/a/../.."), Path::new("/b")).is_none());
+        assert_eq!(
+            relative_path(Path::new("/x/./y"), Path::new("/x/z/../w")).unwrap(),
+            PathBuf::from("../w")
+        );
+    }
 
     #[test]
     fn non_finite_literals_are_quoted_outside_strings_only() {

@@ -239,18 +239,62 @@ fn round_trip_shared_and_per_frame_intrinsics() {
     }
 }
 
-#[test]
-fn writing_elsewhere_keeps_paths_resolvable() {
-    let data = tempfile::tempdir().unwrap();
-    let out = tempfile::tempdir().unwrap();
-    let ds = sample_dataset(data.path(), true);
-    let file = out.path().join("nested/my_transforms.json");
-    write_nerfstudio(&ds, &file).unwrap();
-    let back = read_nerfstudio(&file).unwrap();
-    for (a, b) in ds.frames.iter().zip(&back.frames) {
-        assert_eq!(ds.image_path(a), back.image_path(b));
-        assert_eq!(ds.depth_path(a), back.depth_path(b));
+/// `p` with `.` and `..` resolved lexically.
+fn lexical(p: &Path) -> PathBuf {
+    let mut out = PathBuf::new();
+    for c in p.components() {
+        match c {
+            std::path::Component::CurDir => {}
+            std::path::Component::ParentDir => {
+                out.pop();
+            }
+            c => out.push(c),
+        }
     }
+    out
+}
+
+#[test]
+fn writing_elsewhere_keeps_paths_relative_and_resolvable() {
+    let tmp = tempfile::tempdir().unwrap();
+    let top = tmp.path().join("survey");
+    let data = top.join("data");
+    let ds = sample_dataset(&data, true);
+    let file = top.join("out/nested/my_transforms.json");
+    write_nerfstudio(&ds, &file).unwrap();
+    let json: serde_json::Value = serde_json::from_slice(&fs::read(&file).unwrap()).unwrap();
+    for f in json["frames"].as_array().unwrap() {
+        let p = f["file_path"].as_str().unwrap();
+        assert!(p.starts_with("../../data/images/"), "{p}");
+    }
+    // The file and the data move together: the paths still resolve.
+    let moved = tmp.path().join("moved");
+    fs::rename(&top, &moved).unwrap();
+    let back = read_nerfstudio(&moved.join("out/nested/my_transforms.json")).unwrap();
+    for (a, b) in ds.frames.iter().zip(&back.frames) {
+        let want = |p: PathBuf| moved.join(p.strip_prefix(&top).unwrap());
+        assert_eq!(lexical(&back.image_path(b)), want(ds.image_path(a)));
+        assert_eq!(
+            back.depth_path(b).map(|p| lexical(&p)),
+            ds.depth_path(a).map(want)
+        );
+    }
+}
+
+#[test]
+fn only_splits_with_frames_are_listed() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut ds = sample_dataset(dir.path(), true);
+    for f in &mut ds.frames {
+        f.split = Split::Test;
+    }
+    write_nerfstudio(&ds, dir.path()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_slice(&fs::read(dir.path().join("transforms.json")).unwrap()).unwrap();
+    assert!(json.get("train_filenames").is_none() && json.get("val_filenames").is_none());
+    assert_eq!(json["test_filenames"].as_array().unwrap().len(), 7);
+    let back = read_nerfstudio(dir.path()).unwrap();
+    assert!(back.frames.iter().all(|f| f.split == Split::Test));
 }
 
 #[test]
