@@ -4,8 +4,9 @@
 //! an unrelated image, and runs the paper's Table 3 and the selection on held-out renders; maps
 //! of the same world built without depth files localize nearly as well.
 //!
-//! NeRF and encoder training are not bit-reproducible across runs (parallel gradient
-//! accumulation), so the floors below hold across builds rather than pin one build's numbers.
+//! The maps here are built on one thread, where the same data and config give the same map
+//! (`reproducible.rs`): rayon's parallel reductions would associate the training's sums in
+//! whatever order the work was stolen, and every floor below would then be a draw.
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
@@ -72,6 +73,21 @@ fn fresh_tiny(name: &str) -> (Dataset, PathBuf) {
     (read_dataset(&data).unwrap(), dir.join("map"))
 }
 
+/// `build_map` in a one-thread pool: a reproducible map.
+fn build_one_thread(
+    dataset: &Dataset,
+    map_dir: &Path,
+    config: &MapConfig,
+    on_event: &mut (dyn FnMut(&BuildEvent) + Send),
+) -> Result<(), PipelineError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| build_map(dataset, map_dir, config, on_event))
+        .map(|_| ())
+}
+
 fn built() -> &'static Built {
     static BUILT: OnceLock<Built> = OnceLock::new();
     BUILT.get_or_init(|| {
@@ -80,7 +96,7 @@ fn built() -> &'static Built {
 
         // A build that dies in the middle of training the first encoder.
         let crashed = catch_unwind(AssertUnwindSafe(|| {
-            build_map(&dataset, &map_dir, &config, &mut |e| {
+            build_one_thread(&dataset, &map_dir, &config, &mut |e| {
                 if let BuildEvent::StageFinished { name, seconds, .. } = e {
                     eprintln!("stage {name}: {seconds:.1} s");
                 }
@@ -98,7 +114,7 @@ fn built() -> &'static Built {
 
         // Resume: finished stages are skipped.
         let mut skipped = Vec::new();
-        build_map(&dataset, &map_dir, &config, &mut |e| {
+        build_one_thread(&dataset, &map_dir, &config, &mut |e| {
             if let BuildEvent::StageFinished {
                 name,
                 skipped: s,
@@ -234,7 +250,7 @@ fn calibration_on_rendered_views_keeps_matloc_s_floors() {
     manifest.config = serde_json::to_value(&config).unwrap();
     map.save().unwrap();
     let mut rerun = Vec::new();
-    build_map(&b.dataset, &dir, &config, &mut |e| {
+    build_one_thread(&b.dataset, &dir, &config, &mut |e| {
         if let BuildEvent::StageFinished {
             name,
             skipped: false,
@@ -1066,7 +1082,7 @@ fn built_another_day() -> &'static Built {
         let config: MapConfig =
             serde_json::from_value(MapConfig::overlay_on_default(partial)).unwrap();
         assert!(config.sunlight.enabled && config.encoder.train.net.shadow_invariant);
-        build_map(&dataset, &map_dir, &tiny_sized(config), &mut |e| {
+        build_one_thread(&dataset, &map_dir, &tiny_sized(config), &mut |e| {
             if let BuildEvent::StageFinished { name, seconds, .. } = e {
                 eprintln!("another-day map, stage {name}: {seconds:.1} s");
             }
