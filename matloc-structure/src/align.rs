@@ -261,6 +261,40 @@ pub(crate) fn align(
     (zncc >= options.min_zncc).then_some(u)
 }
 
+/// Normalised cross-correlation of `template` (zero mean, from [`template`]) laid through
+/// `affine` at `at` in the query, without moving it; `None` when the patch leaves the image
+/// or the query is flat there.
+pub(crate) fn zncc_at(
+    query: &QueryPlanes,
+    template: &[f32],
+    affine: &Matrix2<f64>,
+    at: Point2<f64>,
+) -> Option<f64> {
+    let n = template.len();
+    let h = ((n as f64).sqrt() as isize - 1) / 2;
+    let mut values = Vec::with_capacity(n);
+    for dy in -h..=h {
+        for dx in -h..=h {
+            let d = affine * Vector2::new(dx as f64, dy as f64);
+            let (i, ax, ay) = bilinear_at(query.width, query.height, at.x + d.x, at.y + d.y)?;
+            values.push(lerp4(&query.gray, i, query.width, ax, ay));
+        }
+    }
+    if values.len() != n {
+        return None;
+    }
+    let mean = values.iter().sum::<f32>() / n as f32;
+    let (mut var, mut cov) = (0.0f64, 0.0f64);
+    let mut t_energy = 0.0f64;
+    for (v, t) in values.iter().zip(template) {
+        let v = f64::from(v - mean);
+        var += v * v;
+        cov += v * f64::from(*t);
+        t_energy += f64::from(*t) * f64::from(*t);
+    }
+    (var > 1e-9 && t_energy > 1e-12).then(|| cov / (var * t_energy).sqrt())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -13,7 +13,7 @@ use rand::RngCore;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::align::{AlignOptions, QueryPlanes, align, local_affine, template};
+use crate::align::{AlignOptions, QueryPlanes, align, local_affine, template, zncc_at};
 use crate::error::StructureError;
 use crate::store::StructureMap;
 
@@ -62,7 +62,22 @@ pub struct StructureOptions {
     /// Patch alignment of the accepted pose's correspondences to the training images, then
     /// a last solve.
     pub align: AlignOptions,
+    /// A consensus whose inliers' convex hull covers less than this share of the query image
+    /// is accepted only when the rest of the image confirms it (`min_agreement`): a mirrored
+    /// image matches the map only on mirror-symmetric parts of the scene, and their consensus
+    /// sits in one corner of it (tiny: at most 0.094 of the image; every pose of a real view,
+    /// its second flight included, at least 0.23). 0 = off.
+    pub min_inlier_hull: f64,
+    /// Share of the map points the consensus's training images see that must agree with the
+    /// query where the pose puts them (their training patch, laid into the query through the
+    /// pose, correlating at [`AGREEING_ZNCC`] or more) for a consensus below
+    /// `min_inlier_hull` to be accepted (tiny's mirrored views: at most 0.41; real views at
+    /// least 0.58). A map without its training images' gray values cannot confirm one.
+    pub min_agreement: f64,
 }
+
+/// Normalised cross-correlation at which a map point's training patch agrees with the query.
+pub const AGREEING_ZNCC: f64 = 0.5;
 
 impl Default for StructureOptions {
     fn default() -> Self {
@@ -83,6 +98,8 @@ impl Default for StructureOptions {
             second_pass: true,
             query_sharpen: 1.0,
             align: AlignOptions::default(),
+            min_inlier_hull: 0.15,
+            min_agreement: 0.5,
         }
     }
 }
@@ -113,6 +130,11 @@ pub struct StartReport {
     /// The pose passed the inlier and NFA tests but no training image looks within
     /// `max_view_angle_deg` of its viewing direction, so it was not accepted.
     pub unseen: bool,
+    /// The pose passed the other tests, but its inliers cover less than `min_inlier_hull` of
+    /// the image and fewer than `min_agreement` of the map points in view agree with the
+    /// query, so it was not accepted.
+    #[serde(default)]
+    pub unconfirmed: bool,
 }
 
 /// The outcome of a structure localization.
@@ -180,6 +202,7 @@ pub fn localize(
     let (keypoints, descriptors) = detect_and_describe(&gray, &options.keypoints);
     let mut seconds = vec![("keypoints".to_string(), t.elapsed().as_secs_f64())];
     let mut time = Timer::default();
+    let planes = QueryPlanes::new(&gray);
     let query = Query {
         camera,
         keypoints: &keypoints,
@@ -213,6 +236,12 @@ pub fn localize(
         {
             first.report.accepted = false;
             first.report.unseen = true;
+        }
+        // A consensus on one small part of the image that the rest of it does not confirm: a
+        // mirrored image matched on the mirror-symmetric parts of the scene.
+        if first.report.accepted && !confirmed(map, &planes, camera, &first, options) {
+            first.report.accepted = false;
+            first.report.unconfirmed = true;
         }
         reports.push(first.report.clone());
         i += 1;
@@ -252,14 +281,7 @@ pub fn localize(
             && let Some(pose) = chosen.pose
         {
             let t = Instant::now();
-            let refined = aligned(
-                map,
-                &QueryPlanes::new(&gray),
-                camera,
-                &pose,
-                &chosen,
-                &options.align,
-            );
+            let refined = aligned(map, &planes, camera, &pose, &chosen, &options.align);
             time.align += t.elapsed().as_secs_f64();
             if let Some(matches) = refined {
                 let again = solve_matches(matches, index, options, camera, rng, &mut time);
@@ -470,6 +492,7 @@ fn solve_matches(
         log10_nfa: None,
         accepted: false,
         unseen: false,
+        unconfirmed: false,
     };
     let solver = LoRansacPnp::new(options.pnp.clone());
     let solved = solver.solve(
@@ -498,6 +521,129 @@ fn solve_matches(
         images: Vec::new(),
     }
 }
+
+/// Whether `solve`'s consensus holds for the whole query: its inliers cover at least
+/// `options.min_inlier_hull` of the image, or at least `options.min_agreement` of the map
+/// points its training images see agree with the query under its pose ([`agreement`]).
+fn confirmed(
+    map: &StructureMap,
+    planes: &QueryPlanes,
+    camera: &Camera,
+    solve: &Solve,
+    options: &StructureOptions,
+) -> bool {
+    let Some(pose) = solve.pose else {
+        return false;
+    };
+    let inliers = (0..solve.matches.pixels.len())
+        .filter(|&k| solve.inliers.get(k).copied().unwrap_or(false))
+        .map(|k| solve.matches.pixels[k]);
+    if hull_fraction(inliers, camera.width, camera.height) >= options.min_inlier_hull {
+        return true;
+    }
+    agreement(map, planes, camera, &pose, &solve.images).is_some_and(|a| a >= options.min_agreement)
+}
+
+/// Share of a `width` × `height` image covered by the convex hull of `points` (0 for fewer
+/// than three points or points on a line).
+pub(crate) fn hull_fraction(
+    points: impl Iterator<Item = Point2<f64>>,
+    width: u32,
+    height: u32,
+) -> f64 {
+    let mut pts: Vec<Point2<f64>> = points
+        .filter(|p| p.x.is_finite() && p.y.is_finite())
+        .collect();
+    pts.sort_by(|a, b| a.x.total_cmp(&b.x).then(a.y.total_cmp(&b.y)));
+    pts.dedup();
+    if pts.len() < 3 {
+        return 0.0;
+    }
+    // Andrew's monotone chain: the lower hull, then the upper.
+    let mut hull: Vec<Point2<f64>> = Vec::with_capacity(2 * pts.len());
+    for pass in 0..2 {
+        let start = hull.len();
+        let ordered: Box<dyn Iterator<Item = &Point2<f64>>> = if pass == 0 {
+            Box::new(pts.iter())
+        } else {
+            Box::new(pts.iter().rev())
+        };
+        for &p in ordered {
+            while hull.len() >= start + 2 {
+                let (a, b) = (hull[hull.len() - 2], hull[hull.len() - 1]);
+                if (b - a).perp(&(p - a)) > 0.0 {
+                    break;
+                }
+                hull.pop();
+            }
+            hull.push(p);
+        }
+        hull.pop();
+    }
+    let twice_area: f64 = (0..hull.len())
+        .map(|i| {
+            let (a, b) = (hull[i], hull[(i + 1) % hull.len()]);
+            a.x * b.y - b.x * a.y
+        })
+        .sum();
+    let image = f64::from(width) * f64::from(height);
+    if image > 0.0 {
+        (0.5 * twice_area.abs() / image).min(1.0)
+    } else {
+        0.0
+    }
+}
+
+/// Share of the map points seen by training `images` that agree with the query under `pose`:
+/// of those that project into the query with a textured training patch, the share whose patch,
+/// laid into the query through the pose ([`local_affine`]), correlates at [`AGREEING_ZNCC`] or
+/// more where the point projects. `None` when no point could be compared (the map keeps no
+/// gray values, or none projects into the image).
+fn agreement(
+    map: &StructureMap,
+    planes: &QueryPlanes,
+    camera: &Camera,
+    pose: &Pose,
+    images: &[usize],
+) -> Option<f64> {
+    let mut seen = std::collections::HashSet::new();
+    let mut pairs = Vec::new();
+    for &img in images {
+        for (obs, &p) in map.images().get(img)?.point.iter().enumerate() {
+            if seen.insert(p) {
+                pairs.push((img, obs, p));
+            }
+        }
+    }
+    let compared: Vec<bool> = pairs
+        .par_iter()
+        .filter_map(|&(img, obs, p)| {
+            let im = &map.images()[img];
+            let app = im.appearance.as_ref()?;
+            let x = map.points().get(p as usize)?;
+            if !camera.contains(camera.project_world(pose, x)?) {
+                return None;
+            }
+            let px = im.pixel.get(obs)?;
+            let map_px = Point2::new(f64::from(px[0]), f64::from(px[1]));
+            let (at, affine) =
+                local_affine(&app.camera, &im.cam_from_world, map_px, x, camera, pose)?;
+            let patch = template(
+                &app.gray,
+                app.camera.width as usize,
+                app.camera.height as usize,
+                map_px,
+                AGREEMENT_HALF_WINDOW,
+            )?;
+            Some(zncc_at(planes, &patch, &affine, at)? >= AGREEING_ZNCC)
+        })
+        .collect();
+    (!compared.is_empty())
+        .then(|| compared.iter().filter(|&&a| a).count() as f64 / compared.len() as f64)
+}
+
+/// Half side of the patches [`agreement`] compares, training-image pixels.
+const AGREEMENT_HALF_WINDOW: usize = 4;
 
 /// `solve`'s matches with each inlier aligned under `pose`: its query pixel moved to where
 /// the patches of the point's observations in the start's training images fit (the mean

@@ -302,6 +302,115 @@ fn a_pose_no_training_image_looks_at_is_not_accepted() {
     assert!(!unseen.starts[0].accepted);
 }
 
+/// The hull of correspondences spread over the image covers most of it; a cluster in one
+/// corner (a mirrored image's consensus on a mirror-symmetric object) a small share; fewer
+/// than three points or points on a line, nothing.
+#[test]
+fn the_inlier_hull_measures_how_much_of_the_image_a_consensus_covers() {
+    let grid = (0..10).flat_map(|i| {
+        (0..8).map(move |j| Point2::new(16.0 + 32.0 * i as f64, 15.0 + 30.0 * j as f64))
+    });
+    let spread = hull_fraction(grid, 320, 240);
+    // (304 - 16) × (225 - 15) of 320 × 240.
+    assert!(
+        (spread - 288.0 * 210.0 / (320.0 * 240.0)).abs() < 1e-9,
+        "{spread}"
+    );
+    let cluster = (0..20).map(|k| {
+        let a = k as f64 * 0.7;
+        Point2::new(40.0 + 20.0 * a.cos(), 50.0 + 20.0 * a.sin())
+    });
+    let small = hull_fraction(cluster, 320, 240);
+    assert!(small > 0.0 && small < 0.02, "{small}");
+    let line = (0..10).map(|k| Point2::new(k as f64, 2.0 * k as f64));
+    assert_eq!(hull_fraction(line, 320, 240), 0.0);
+    assert_eq!(
+        hull_fraction(
+            [Point2::new(1.0, 1.0), Point2::new(5.0, 9.0)].into_iter(),
+            320,
+            240
+        ),
+        0.0
+    );
+    assert_eq!(hull_fraction(std::iter::empty(), 320, 240), 0.0);
+    assert_eq!(
+        hull_fraction(
+            [
+                Point2::new(f64::NAN, 1.0),
+                Point2::new(5.0, 9.0),
+                Point2::new(0.0, 9.0)
+            ]
+            .into_iter(),
+            320,
+            240
+        ),
+        0.0
+    );
+}
+
+/// Under the true pose the map's points agree with the query; with the query mirrored top to
+/// bottom, they agree only by chance.
+#[test]
+fn the_map_points_agree_with_a_view_and_not_with_its_mirror_image() {
+    let map = plane_structure();
+    let camera = camera();
+    let gt = pose_above(4.3, -5.1, 0.12);
+    let query = render(&camera, &gt, ground);
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut mirrored = Image::new(w, h, 3);
+    for r in 0..h {
+        for c in 0..w {
+            mirrored
+                .pixel_mut(c, r)
+                .copy_from_slice(query.pixel(c, h - 1 - r));
+        }
+    }
+    let images: Vec<usize> = (0..map.images().len()).collect();
+    let planes = |img: &Image<f32>| QueryPlanes::new(&GrayImage::from_image(img));
+    let straight = agreement(&map, &planes(&query), &camera, &gt, &images).unwrap();
+    let flipped = agreement(&map, &planes(&mirrored), &camera, &gt, &images).unwrap();
+    eprintln!("agreement: view {straight:.3}, mirror image {flipped:.3}");
+    assert!(straight > 0.9, "{straight}");
+    assert!(flipped < 0.3, "{flipped}");
+}
+
+/// A query that shows the mapped ground only in one corner (the rest another place) gets a
+/// consensus there whose pose the rest of the image contradicts: it is refused, marked
+/// unconfirmed, and accepted with the check off.
+#[test]
+fn a_consensus_on_a_corner_of_the_image_that_the_rest_contradicts_is_refused() {
+    let map = plane_structure();
+    let camera = camera();
+    let gt = pose_above(-2.0, 3.0, 0.08);
+    let view = render(&camera, &gt, ground);
+    let other = render(&camera, &gt, |x, y| ground(x + 1000.0, y - 777.0));
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut query = Image::new(w, h, 3);
+    for r in 0..h {
+        for c in 0..w {
+            let from = if c < 110 && r < 90 { &view } else { &other };
+            query.pixel_mut(c, r).copy_from_slice(from.pixel(c, r));
+        }
+    }
+    let run = |o: &StructureOptions| {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        localize(&map, &query, &camera, &[gt], o, &mut rng).unwrap()
+    };
+    let off = run(&StructureOptions {
+        min_inlier_hull: 0.0,
+        ..StructureOptions::default()
+    });
+    let pose = off.cam_from_world.expect("accepted with the check off");
+    assert!(translation_error_m(&pose, &gt) < 1.0, "{:?}", off.starts);
+    let on = run(&StructureOptions::default());
+    assert!(on.cam_from_world.is_none(), "{:?}", on.starts);
+    assert!(
+        on.starts[0].unconfirmed && !on.starts[0].accepted,
+        "{:?}",
+        on.starts
+    );
+}
+
 #[test]
 fn a_query_of_the_wrong_size_is_an_error() {
     let map = StructureMap::default();
