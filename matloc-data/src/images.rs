@@ -11,7 +11,7 @@
 //! Every file is written atomically through [`matloc_core::fsutil`].
 
 use std::fs;
-use std::io::{self, BufWriter, Write};
+use std::io::{self, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 use image::codecs::png::PngEncoder;
@@ -105,6 +105,14 @@ pub enum ImageLoadError {
         /// The limit and the request (boxed: it is large and rare).
         source: Box<matloc_core::limits::LimitError>,
     },
+    /// The file ends before its image data does (a partial copy or download).
+    #[error("{path}: truncated: {detail}")]
+    Truncated {
+        /// The file.
+        path: PathBuf,
+        /// Where it ends.
+        detail: String,
+    },
     /// A buffer with the wrong number of channels was given to a writer.
     #[error("{path}: expected a {expected}-channel image, got {actual} channels")]
     Channels {
@@ -132,6 +140,12 @@ fn io_error(path: &Path, source: io::Error) -> ImageLoadError {
 
 fn codec_error(path: &Path, source: image::ImageError) -> ImageLoadError {
     match source {
+        image::ImageError::IoError(e) if e.kind() == io::ErrorKind::UnexpectedEof => {
+            ImageLoadError::Truncated {
+                path: path.to_path_buf(),
+                detail: "the file ends inside the image data".into(),
+            }
+        }
         image::ImageError::IoError(e) => io_error(path, e),
         source => ImageLoadError::Codec {
             path: path.to_path_buf(),
@@ -204,7 +218,160 @@ fn decode(path: &Path) -> Result<DynamicImage, ImageLoadError> {
         .map_err(|e| io_error(path, e))?
         .with_guessed_format()
         .map_err(|e| io_error(path, e))?;
+    // The JPEG decoder fills missing scan data with grey instead of failing: a JPEG must
+    // reach its end-of-image marker.
+    if reader.format() == Some(image::ImageFormat::Jpeg) {
+        let file = fs::File::open(path).map_err(|e| io_error(path, e))?;
+        jpeg_reaches_eoi(io::BufReader::new(file)).map_err(|e| match e {
+            JpegEnd::Io(e) => io_error(path, e),
+            JpegEnd::Truncated(detail) => ImageLoadError::Truncated {
+                path: path.to_path_buf(),
+                detail,
+            },
+        })?;
+    }
     reader.decode().map_err(|e| codec_error(path, e))
+}
+
+/// Why a JPEG's marker walk stopped short of its end-of-image marker.
+enum JpegEnd {
+    Io(io::Error),
+    Truncated(String),
+}
+
+/// A reader of JPEG bytes that counts them.
+struct JpegBytes<R> {
+    r: R,
+    offset: u64,
+}
+
+impl<R: io::BufRead> JpegBytes<R> {
+    fn eof(&self) -> JpegEnd {
+        JpegEnd::Truncated(format!(
+            "the file ends after {} bytes, before the JPEG end-of-image marker",
+            self.offset
+        ))
+    }
+
+    fn byte(&mut self) -> Result<u8, JpegEnd> {
+        let mut b = [0u8];
+        match self.r.read_exact(&mut b) {
+            Ok(()) => {
+                self.offset += 1;
+                Ok(b[0])
+            }
+            Err(e) if e.kind() == io::ErrorKind::UnexpectedEof => Err(self.eof()),
+            Err(e) => Err(JpegEnd::Io(e)),
+        }
+    }
+
+    /// Skips `n` bytes.
+    fn skip(&mut self, n: u64) -> Result<(), JpegEnd> {
+        let skipped =
+            io::copy(&mut self.r.by_ref().take(n), &mut io::sink()).map_err(JpegEnd::Io)?;
+        self.offset += skipped;
+        if skipped < n {
+            return Err(self.eof());
+        }
+        Ok(())
+    }
+
+    /// Skips to just past the next 0xFF byte.
+    fn past_next_ff(&mut self) -> Result<(), JpegEnd> {
+        loop {
+            let buf = self.r.fill_buf().map_err(JpegEnd::Io)?;
+            if buf.is_empty() {
+                return Err(self.eof());
+            }
+            match buf.iter().position(|&b| b == 0xFF) {
+                Some(i) => {
+                    self.r.consume(i + 1);
+                    self.offset += i as u64 + 1;
+                    return Ok(());
+                }
+                None => {
+                    let n = buf.len();
+                    self.r.consume(n);
+                    self.offset += n as u64;
+                }
+            }
+        }
+    }
+
+    /// The marker code after a 0xFF, past any fill bytes.
+    fn marker_code(&mut self) -> Result<u8, JpegEnd> {
+        let mut m = self.byte()?;
+        while m == 0xFF {
+            m = self.byte()?;
+        }
+        Ok(m)
+    }
+}
+
+/// Walks a JPEG's markers from the start-of-image marker to the end-of-image marker:
+/// segments are skipped by their length (so thumbnails inside APP segments are never mistaken
+/// for the image's end), scan data up to the next marker that is not a stuffed byte or a
+/// restart marker. Bytes after the end-of-image marker are allowed.
+fn jpeg_reaches_eoi(r: impl io::BufRead) -> Result<(), JpegEnd> {
+    let mut j = JpegBytes { r, offset: 0 };
+    if j.byte()? != 0xFF || j.byte()? != 0xD8 {
+        return Err(JpegEnd::Truncated("no JPEG start-of-image marker".into()));
+    }
+    let mut pending: Option<u8> = None;
+    loop {
+        let marker = match pending.take() {
+            Some(m) => m,
+            None => {
+                if j.byte()? != 0xFF {
+                    return Err(JpegEnd::Truncated(format!(
+                        "no JPEG marker at byte {} where a segment ends",
+                        j.offset - 1
+                    )));
+                }
+                j.marker_code()?
+            }
+        };
+        match marker {
+            0xD9 => return Ok(()),
+            // Markers without a length.
+            0x01 | 0xD0..=0xD7 => continue,
+            _ => {}
+        }
+        let len = u16::from_be_bytes([j.byte()?, j.byte()?]);
+        if len < 2 {
+            return Err(JpegEnd::Truncated(format!(
+                "JPEG segment 0xFF{marker:02X} at byte {} has length {len}",
+                j.offset - 4
+            )));
+        }
+        j.skip(u64::from(len) - 2)?;
+        if marker != 0xDA {
+            continue;
+        }
+        // Scan data: up to the first marker that is neither a stuffed 0xFF00 nor a restart.
+        loop {
+            j.past_next_ff()?;
+            let m = j.marker_code()?;
+            if m != 0x00 && !(0xD0..=0xD7).contains(&m) {
+                pending = Some(m);
+                break;
+            }
+        }
+    }
+}
+
+/// Decodes an image file in full (after the memory check) and returns its size: a truncated
+/// or corrupt file is an error here, where [`image_size`] reads only the header.
+pub fn check_image(path: &Path) -> Result<(u32, u32), ImageLoadError> {
+    let img = decode(path)?;
+    Ok((img.width(), img.height()))
+}
+
+/// Reads a depth map in full as [`read_depth`] does (`.npy` float, or 16-bit grey PNG in
+/// millimetres) and returns its size.
+pub fn check_depth(path: &Path) -> Result<(u32, u32), ImageLoadError> {
+    let depth = read_depth(path, PNG_DEPTH_SCALE_M)?;
+    Ok((depth.width() as u32, depth.height() as u32))
 }
 
 /// Loads an RGB image as three channels in `[0, 1]` (8-bit values / 255; 16-bit / 65535).
@@ -738,7 +905,6 @@ pub fn parse_npy(bytes: &[u8]) -> Result<Image<f32>, String> {
 
 /// Width and height of an `.npy` depth map, reading only its header.
 pub fn npy_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
-    use std::io::Read;
     let npy_err = |reason: String| ImageLoadError::Npy {
         path: path.to_path_buf(),
         reason,
@@ -815,6 +981,11 @@ mod tests {
 
     /// A PNG with only a signature and an IHDR chunk claiming `w × h` RGB8 pixels.
     fn png_header_only(w: u32, h: u32) -> Vec<u8> {
+        png_with_idat(w, h, None)
+    }
+
+    /// A PNG claiming `w × h` RGB8 pixels, with `idat` as its one IDAT chunk, if any.
+    fn png_with_idat(w: u32, h: u32, idat: Option<&[u8]>) -> Vec<u8> {
         fn crc32(bytes: &[u8]) -> u32 {
             let mut c = !0u32;
             for &b in bytes {
@@ -837,6 +1008,15 @@ mod tests {
         out.extend_from_slice(&13u32.to_be_bytes());
         out.extend_from_slice(&chunk);
         out.extend_from_slice(&crc32(&chunk).to_be_bytes());
+        if let Some(data) = idat {
+            for (kind, data) in [(&b"IDAT"[..], data), (&b"IEND"[..], &[][..])] {
+                let mut chunk = kind.to_vec();
+                chunk.extend_from_slice(data);
+                out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+                out.extend_from_slice(&chunk);
+                out.extend_from_slice(&crc32(&chunk).to_be_bytes());
+            }
+        }
         out
     }
 
@@ -866,7 +1046,96 @@ mod tests {
         fs::write(&path, png_header_only(64, 48)).unwrap();
         assert!(matches!(
             load_rgb(&path).unwrap_err(),
-            ImageLoadError::Codec { .. } | ImageLoadError::Io { .. }
+            ImageLoadError::Truncated { .. } | ImageLoadError::Codec { .. }
         ));
+    }
+
+    fn jpeg_bytes(w: u32, h: u32) -> Vec<u8> {
+        use image::codecs::jpeg::JpegEncoder;
+        let raw: Vec<u8> = (0..w * h * 3).map(|i| (i * 7 % 251) as u8).collect();
+        let mut out = Vec::new();
+        JpegEncoder::new_with_quality(&mut out, 90)
+            .encode(&raw, w, h, image::ExtendedColorType::Rgb8)
+            .unwrap();
+        out
+    }
+
+    #[test]
+    fn a_truncated_jpeg_is_refused_though_its_decoder_would_fill_it_in() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("view.jpg");
+        let good = jpeg_bytes(64, 48);
+        fs::write(&path, &good).unwrap();
+        assert_eq!(check_image(&path).unwrap(), (64, 48));
+        // Bytes after the end-of-image marker are allowed.
+        let mut trailing = good.clone();
+        trailing.extend_from_slice(b"trailer");
+        fs::write(&path, &trailing).unwrap();
+        assert_eq!(check_image(&path).unwrap(), (64, 48));
+        for cut in [good.len() * 6 / 10, good.len() - 2, good.len() / 3] {
+            fs::write(&path, &good[..cut]).unwrap();
+            let e = check_image(&path).unwrap_err();
+            assert!(matches!(e, ImageLoadError::Truncated { .. }), "{cut}: {e}");
+            assert!(e.to_string().contains("view.jpg"), "{e}");
+            assert!(load_rgb(&path).is_err(), "{cut}");
+        }
+        // An end-of-image marker inside an APP segment (an embedded thumbnail) is not the end.
+        let mut app = good[..2].to_vec();
+        app.extend_from_slice(&[0xFF, 0xE1, 0, 6, 0xFF, 0xD9, 0xFF, 0xD9]);
+        app.extend_from_slice(&good[2..good.len() * 6 / 10]);
+        fs::write(&path, &app).unwrap();
+        assert!(matches!(
+            check_image(&path).unwrap_err(),
+            ImageLoadError::Truncated { .. }
+        ));
+    }
+
+    #[test]
+    fn undecodable_images_and_depth_maps_are_named_with_what_is_wrong() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frame.png");
+        let img = Image::from_vec(32, 24, 3, vec![0.5; 32 * 24 * 3]).unwrap();
+        let good = encode_png_rgb(&img, &path).unwrap();
+        fs::write(&path, &good[..good.len() / 2]).unwrap();
+        let e = check_image(&path).unwrap_err();
+        assert!(matches!(e, ImageLoadError::Truncated { .. }), "{e}");
+        assert!(e.to_string().contains("frame.png"), "{e}");
+        // Header intact, so only decoding finds it.
+        assert_eq!(image_size(&path).unwrap(), (32, 24));
+
+        // An IDAT that is not zlib.
+        let mut bad = good.clone();
+        let idat = bad.windows(4).position(|w| w == b"IDAT").unwrap() + 4;
+        bad[idat] = 0xFF;
+        bad[idat + 1] = 0xFF;
+        fs::write(&path, &bad).unwrap();
+        let e = check_image(&path).unwrap_err();
+        assert!(matches!(e, ImageLoadError::Codec { .. }), "{e}");
+
+        // A header claiming 64000x48000 pixels with a few bytes of data.
+        let tiny_idat = [0x78, 0x01, 0x01, 0x00, 0x00, 0xFF, 0xFF, 0, 0, 0, 1];
+        fs::write(&path, png_with_idat(64_000, 48_000, Some(&tiny_idat))).unwrap();
+        assert_eq!(image_size(&path).unwrap(), (64_000, 48_000));
+        let e = check_image(&path).unwrap_err();
+        // Refused before any allocation: by the memory budget, or by the codec's own limit
+        // on a machine whose budget would hold 80 GB.
+        assert!(
+            matches!(
+                e,
+                ImageLoadError::Limit { .. } | ImageLoadError::Codec { .. }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("frame.png"), "{e}");
+
+        // An 8-bit PNG as a depth map.
+        let depth = dir.path().join("depth.png");
+        write_png_rgb(&img, &depth).unwrap();
+        let e = check_depth(&depth).unwrap_err();
+        assert!(matches!(e, ImageLoadError::NotDepthPng { .. }), "{e}");
+        assert!(e.to_string().contains("16-bit"), "{e}");
+        let d = Image::from_vec(4, 3, 1, vec![2.5; 12]).unwrap();
+        write_depth_png(&d, &depth, PNG_DEPTH_SCALE_M).unwrap();
+        assert_eq!(check_depth(&depth).unwrap(), (4, 3));
     }
 }

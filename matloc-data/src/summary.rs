@@ -10,7 +10,7 @@ use serde::Serialize;
 use crate::colmap::{find_model_dir, read_colmap_dataset};
 use crate::dataset::{Dataset, SceneMetadata, Split};
 use crate::error::DataError;
-use crate::images::{depth_size, image_size};
+use crate::images::{ImageLoadError, check_depth, check_image, depth_size, image_size};
 use crate::meganerf::{COORDINATES_FILE, is_mega_nerf_dir, read_mega_nerf};
 use crate::nerfstudio::{BLENDER_SPLIT_FILES, TRANSFORMS_JSON, read_nerfstudio};
 
@@ -638,41 +638,122 @@ pub fn plausibility(dataset: &Dataset) -> Vec<Problem> {
     problems
 }
 
-/// [`validate`], then every image and depth map decoded in full (not only its header): a
-/// truncated PNG / JPEG or a depth file of the wrong dtype is found here.
-pub fn validate_deep(dataset: &Dataset) -> Vec<Problem> {
+/// Which file of a frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FrameFile {
+    /// The frame's image.
+    Image,
+    /// The frame's depth map.
+    Depth,
+}
+
+/// A frame's image or depth map that does not decode in full.
+#[derive(Debug)]
+pub struct DecodeFailure {
+    /// Frame index.
+    pub frame: usize,
+    /// Which of its files.
+    pub file: FrameFile,
+    /// Resolved path.
+    pub path: PathBuf,
+    /// What is wrong: [`ImageLoadError::Truncated`], a codec error (bad compressed data, an
+    /// impossible header), [`ImageLoadError::Limit`] (decoding would exceed the memory
+    /// budget), [`ImageLoadError::NotDepthPng`] / [`ImageLoadError::Npy`] (a depth map that is
+    /// not 16-bit grey PNG or float `.npy`), [`ImageLoadError::NotFound`].
+    pub error: ImageLoadError,
+}
+
+impl DecodeFailure {
+    /// The failure as a dataset [`Problem`].
+    pub fn problem(&self) -> Problem {
+        let (frame, path, reason) = (self.frame, self.path.clone(), self.error.to_string());
+        match self.file {
+            FrameFile::Image => Problem::UnreadableImage {
+                frame,
+                path,
+                reason,
+            },
+            FrameFile::Depth => Problem::UnreadableDepth {
+                frame,
+                path,
+                reason,
+            },
+        }
+    }
+}
+
+/// Files [`decode_failures`] decodes: every frame's image and each depth map.
+pub fn decoded_file_count(dataset: &Dataset) -> usize {
+    dataset.frames.len()
+        + dataset
+            .frames
+            .iter()
+            .filter(|f| f.depth_path.is_some())
+            .count()
+}
+
+/// Decodes every frame's image ([`check_image`]) and depth map ([`check_depth`]) in full, in
+/// parallel, each after the memory check of the size its header claims; `decoded` is called
+/// once per file. Returns the files that fail, in frame order (image before depth). What both
+/// `matloc dataset info` and the map build's plan step run.
+pub fn decode_failures(dataset: &Dataset, decoded: &(dyn Fn() + Sync)) -> Vec<DecodeFailure> {
     use rayon::prelude::*;
-    let mut problems = validate(dataset);
-    let decoded: Vec<Problem> = dataset
+    dataset
         .frames
         .par_iter()
         .enumerate()
         .flat_map_iter(|(i, frame)| {
             let mut out = Vec::new();
             let path = dataset.image_path(frame);
-            if path.is_file()
-                && let Err(e) = crate::images::load_rgb(&path)
-            {
-                out.push(Problem::UnreadableImage {
+            if let Err(error) = check_image(&path) {
+                out.push(DecodeFailure {
                     frame: i,
+                    file: FrameFile::Image,
                     path,
-                    reason: e.to_string(),
+                    error,
                 });
             }
-            if let Some(path) = dataset.depth_path(frame)
-                && path.is_file()
-                && let Err(e) = crate::images::read_depth(&path, crate::images::PNG_DEPTH_SCALE_M)
-            {
-                out.push(Problem::UnreadableDepth {
-                    frame: i,
-                    path,
-                    reason: e.to_string(),
-                });
+            decoded();
+            if let Some(path) = dataset.depth_path(frame) {
+                if let Err(error) = check_depth(&path) {
+                    out.push(DecodeFailure {
+                        frame: i,
+                        file: FrameFile::Depth,
+                        path,
+                        error,
+                    });
+                }
+                decoded();
             }
             out
         })
+        .collect()
+}
+
+/// [`validate`], then every image and depth map decoded in full ([`decode_failures`]; a file
+/// [`validate`] already reported is not reported again), then the point cloud read: a
+/// truncated PNG / JPEG, bad compressed data, a header claiming more pixels than the memory
+/// budget holds or a depth file of the wrong bit depth or dtype is found here. `decoded` is
+/// called once per decoded file (a progress bar).
+pub fn validate_deep(dataset: &Dataset, decoded: &(dyn Fn() + Sync)) -> Vec<Problem> {
+    let mut problems = validate(dataset);
+    let reported: std::collections::HashSet<PathBuf> = problems
+        .iter()
+        .filter_map(|p| match p {
+            Problem::MissingImage { path, .. }
+            | Problem::UnreadableImage { path, .. }
+            | Problem::MissingDepth { path, .. }
+            | Problem::UnreadableDepth { path, .. } => Some(path.clone()),
+            _ => None,
+        })
         .collect();
-    problems.extend(decoded);
+    problems.extend(
+        decode_failures(dataset, decoded)
+            .iter()
+            .filter(|f| !reported.contains(&f.path))
+            .map(DecodeFailure::problem),
+    );
     // The point cloud a map build may take its surface from.
     if let Err(e) = crate::points::read_points(dataset) {
         problems.push(Problem::UnreadablePoints {
@@ -748,8 +829,9 @@ pub fn validate(dataset: &Dataset) -> Vec<Problem> {
     problems
 }
 
-/// Opens `path` (any supported format) and returns its summary and validation problems.
+/// Opens `path` (any supported format) and returns its summary and validation problems, with
+/// every file decoded ([`validate_deep`], as `matloc dataset info` does by default).
 pub fn inspect(path: &Path) -> Result<(DatasetSummary, Vec<Problem>), DataError> {
     let dataset = read_dataset(path)?;
-    Ok((summarize(&dataset), validate(&dataset)))
+    Ok((summarize(&dataset), validate_deep(&dataset, &|| {})))
 }

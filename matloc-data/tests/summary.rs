@@ -265,12 +265,12 @@ fn deep_validation_decodes_every_image() {
             .unwrap();
         }
     }
-    assert!(matloc_data::summary::validate_deep(&ds).is_empty());
+    assert!(matloc_data::summary::validate_deep(&ds, &|| {}).is_empty());
     let victim = ds.image_path(&ds.frames[5]);
     let bytes = fs::read(&victim).unwrap();
     fs::write(&victim, &bytes[..bytes.len() - 20]).unwrap();
     assert!(validate(&ds).is_empty(), "the header is intact");
-    let deep = matloc_data::summary::validate_deep(&ds);
+    let deep = matloc_data::summary::validate_deep(&ds, &|| {});
     assert_eq!(deep.len(), 1, "{deep:?}");
     assert!(
         deep[0].to_string().contains("5_") || deep[0].to_string().contains("1_1"),
