@@ -131,7 +131,20 @@ pub fn plan_map_with(
             if implausible.len() > 5 { "; …" } else { "" }
         )));
     }
-    // Every stage at the working resolution; checked (image headers) before the map exists.
+    // Every image and depth map decodes in full (what `matloc dataset info` checks), before
+    // the map exists: the first failure is the error, the others are logged.
+    tracing::info!(
+        files = matloc_data::summary::decoded_file_count(dataset),
+        "decoding the images and depth maps"
+    );
+    let mut failures = matloc_data::summary::decode_failures(dataset, &|| {}).into_iter();
+    if let Some(first) = failures.next() {
+        for f in failures {
+            tracing::error!("{}", f.problem());
+        }
+        return Err(first.error.into());
+    }
+    // Every stage at the working resolution.
     let working = matloc_data::images::working_dataset(dataset, config.images.max_side)?;
     // A surface source that cannot exist fails here, not after the map directory is made.
     matloc_surface::plan(
