@@ -187,6 +187,17 @@ pub enum MapError {
         /// Blocks of the map.
         total: usize,
     },
+    /// A listed file (checksum intact) whose content is not what its stage writes or what
+    /// localization loads ([`crate::map::check::content_problems`]).
+    #[error("{path}: {field}: {message}")]
+    Content {
+        /// The file.
+        path: PathBuf,
+        /// The part of it: a tensor, a JSON field, the header.
+        field: String,
+        /// What is wrong, with the bound.
+        message: String,
+    },
     /// Resuming a build whose recorded config differs from the requested one.
     #[error(
         "{path}: the map was started with another config; use a new output directory or the same config"

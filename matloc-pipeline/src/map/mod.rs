@@ -1,6 +1,8 @@
 //! The map directory: the versioned manifest with checksums ([`manifest`]), where each stage's
-//! files live ([`layout`]), and a built map loaded behind the stage traits ([`load`]).
+//! files live ([`layout`]), a built map loaded behind the stage traits ([`load`]), and the
+//! content of its files checked beyond their checksums ([`check`]).
 
+pub mod check;
 pub mod layout;
 pub mod load;
 pub mod manifest;
