@@ -7,18 +7,28 @@ use matloc_data::Split;
 use matloc_data::summary::{self, detect_format};
 use matloc_surface::SurfaceChoice;
 
-/// Reads the dataset, checks every referenced file (headers, or every byte with `deep`) and the
-/// plausibility of intrinsics and poses, and prints the summary. Fails (non-zero exit) when the
-/// dataset cannot be read or any problem is found.
-pub fn info(path: &Path, json: bool, deep: bool) -> Result<()> {
+use crate::progress;
+
+/// Reads the dataset, checks every referenced file (decoded in full, in parallel; headers only
+/// with `quick`) and the plausibility of intrinsics and poses, and prints the summary. Fails
+/// (non-zero exit) when the dataset cannot be read or any problem is found; the problems go to
+/// stderr (and to stdout with the summary).
+pub fn info(path: &Path, json: bool, quick: bool, quiet: bool) -> Result<()> {
     let format = detect_format(path)?;
     let dataset = summary::read_dataset(path)
         .with_context(|| format!("reading dataset at {}", path.display()))?;
     let summary = summary::summarize(&dataset);
-    let problems = if deep {
-        summary::validate_deep(&dataset)
-    } else {
+    let problems = if quick {
         summary::validate(&dataset)
+    } else {
+        let bar = progress::bar(
+            summary::decoded_file_count(&dataset) as u64,
+            "decoding",
+            quiet,
+        );
+        let problems = summary::validate_deep(&dataset, &|| bar.inc(1));
+        bar.finish_and_clear();
+        problems
     };
     // What a map build (default surface settings) would partition on.
     let train = dataset.split_indices(Split::Train);
@@ -42,7 +52,14 @@ pub fn info(path: &Path, json: bool, deep: bool) -> Result<()> {
             surface.frames
         )?;
         if problems.is_empty() {
-            outln!("files: all referenced images and depth maps present and consistent")?;
+            if quick {
+                outln!(
+                    "files: all referenced images and depth maps present, headers consistent \
+                     (not decoded: --quick)"
+                )?;
+            } else {
+                outln!("files: all referenced images and depth maps decode and are consistent")?;
+            }
         } else {
             outln!("problems ({}):", problems.len())?;
             for p in problems.iter().take(50) {

@@ -89,17 +89,19 @@ enum Command {
 
 #[derive(Subcommand)]
 enum DatasetCommand {
-    /// Validate a transforms.json or COLMAP dataset and print a summary.
+    /// Validate a dataset (nerfstudio, COLMAP, Mega-NeRF) and print a summary: every image
+    /// and depth map is decoded in full (in parallel, with a progress bar), and each file
+    /// that does not decode is a problem on stderr naming it and what is wrong.
     Info {
         /// Dataset directory, transforms.json file, or COLMAP model directory.
         path: PathBuf,
         /// Print the summary as JSON instead of text.
         #[arg(long)]
         json: bool,
-        /// Decode every image and depth map in full (not only the headers): finds truncated
-        /// or corrupt files.
+        /// Read only the headers of the images and depth maps (sizes), not decode them in
+        /// full: fast, but a truncated or corrupt file passes.
         #[arg(long)]
-        deep: bool,
+        quick: bool,
     },
     /// Convert another dataset layout into a nerfstudio transforms.json.
     Import {
@@ -117,8 +119,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Synth(args) => synth_cmd::run(&args, cli.quiet),
         Command::Dataset {
-            command: DatasetCommand::Info { path, json, deep },
-        } => dataset_cmd::info(&path, json, deep),
+            command: DatasetCommand::Info { path, json, quick },
+        } => dataset_cmd::info(&path, json, quick, cli.quiet),
         Command::Dataset {
             command: DatasetCommand::Import { format },
         } => import_cmd::run(&format),

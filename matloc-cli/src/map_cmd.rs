@@ -14,6 +14,7 @@ use matloc_pipeline::build::{
 };
 use matloc_pipeline::config::CalibrationQueries;
 use matloc_pipeline::map::MapError;
+use matloc_pipeline::map::check::content_problems;
 use matloc_pipeline::map::layout::{
     CONFIDENCE_FILE, CalibrationRecord, PLAN_FILE, PLAN_FORMAT, PlanRecord, SelectionRecord,
     block_stages, required_stages, selection_file,
@@ -57,8 +58,9 @@ pub enum MapCommand {
     /// Write Slurm batch scripts for a planned map: a job array over the blocks, a finish job
     /// that runs after all of them succeeded, and submit.sh that submits both.
     Slurm(SlurmArgs),
-    /// Summarise a map: blocks, sizes, selected dims, stage times. Fails (after the summary)
-    /// when the map is incomplete or damaged, with the reasons on stderr.
+    /// Summarise a map: blocks, sizes, selected dims, stage times, and the checks of `map
+    /// verify`. Fails (after the summary) when the map is incomplete or damaged, with the
+    /// reasons on stderr.
     Info {
         /// Map directory.
         map: PathBuf,
@@ -67,7 +69,11 @@ pub enum MapCommand {
         json: bool,
     },
     /// Check a map: every listed file against its size and checksum, every stage a complete
-    /// map has, and the files each stage writes. One line per problem; fails on any.
+    /// map has and the files each stage writes; then every file parsed and loaded as
+    /// localization loads it: safetensors headers, dtypes and shapes against the map's configs
+    /// with every value finite, JSON files into their types, the partition against the block
+    /// count, each selection's dims below the feature dimension and produced by its encoder.
+    /// One line per problem (naming file and field, on stdout and stderr); fails on any.
     Verify {
         /// Map directory.
         map: PathBuf,
@@ -671,10 +677,12 @@ fn fail_on(root: &Path, problems: &[MapError]) -> Result<()> {
 fn verify(root: &Path) -> Result<()> {
     let map =
         MapDir::open_manifest(root).with_context(|| format!("opening map {}", root.display()))?;
-    let problems = map.problems();
+    let mut problems = map.problems();
+    problems.extend(content_problems(&map));
     for p in &problems {
         outln!("{p}")?;
     }
+    report_problems(&problems);
     fail_on(root, &problems)?;
     outln!(
         "map {}: ok ({} files, {} stages)",
@@ -692,13 +700,22 @@ fn info(root: &Path, json: bool) -> Result<()> {
         .into_iter()
         .filter(|s| !map.stage_done(s))
         .collect();
-    let problems = map.problems();
+    let mut problems = map.problems();
+    let contents = content_problems(&map);
+    let contents_summary = match contents.as_slice() {
+        [] => "ok".to_string(),
+        [only] => format!("FAILED: {only}"),
+        [first, ..] => format!("FAILED on {} parts, first: {first}", contents.len()),
+    };
+    problems.extend(contents);
     let file_problems = problems
         .iter()
         .filter(|p| {
             !matches!(
                 p,
-                MapError::StageMissing { .. } | MapError::StageFileNotListed { .. }
+                MapError::StageMissing { .. }
+                    | MapError::StageFileNotListed { .. }
+                    | MapError::Content { .. }
             )
         })
         .count();
@@ -738,6 +755,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
             "files": m.files.len(),
             "bytes": map.total_bytes(),
             "checksums": match &verified { Ok(()) => "ok".to_string(), Err(e) => e.clone() },
+            "contents": contents_summary,
             "problems": problems.iter().map(|p| p.to_string()).collect::<Vec<_>>(),
         });
         outln!("{}", serde_json::to_string_pretty(&doc)?)?;
@@ -763,6 +781,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
             Err(e) => format!("FAILED on {file_problems} files, first: {e}"),
         }
     )?;
+    outln!("  contents     {contents_summary}")?;
     outln!(
         "  status       {}",
         if !missing.is_empty() {
