@@ -1,9 +1,11 @@
 //! Query intrinsics as a request or a query list states them: a COLMAP model name with its
 //! parameters (hloc's `queries_with_intrinsics.txt`, the `camera` part of a request), nerfstudio
 //! keys, or a matloc [`Camera`]. Only models the renderer and solver handle (pinhole +
-//! Brown–Conrady) are read; any other is rejected by name, with the supported list.
+//! Brown–Conrady) are read; any other is rejected by name, with the supported list. Image sizes
+//! are whole numbers, written as integers or as whole-valued floats (`160.0`, as Python's
+//! `json.dumps` writes a float); [`check_plausible`] rejects intrinsics no real camera has.
 
-use matloc_core::{Camera, CameraError, Distortion};
+use matloc_core::{Camera, CameraError, Distortion, ImplausibleCamera};
 use matloc_data::colmap::{ColmapCamera, ColmapCameraModel};
 use serde::Deserialize;
 use serde_json::Value;
@@ -61,6 +63,36 @@ pub enum CameraSpecError {
         /// What is wrong.
         source: CameraError,
     },
+    /// Well-formed intrinsics that no real camera has (see [`Camera::plausibility`]).
+    #[error("implausible camera: {0}")]
+    Implausible(#[source] ImplausibleCamera),
+}
+
+impl CameraSpecError {
+    /// The camera field at fault, where one is (`width`, `fx`, `k4`, `distortion`, ...).
+    pub fn field(&self) -> Option<&'static str> {
+        match self {
+            CameraSpecError::Field { field, .. } => Some(field),
+            CameraSpecError::Implausible(p) => Some(p.field()),
+            CameraSpecError::Invalid {
+                source:
+                    CameraError::NonFinite { field, .. } | CameraError::NonPositiveFocal { field, .. },
+                ..
+            } => Some(field),
+            _ => None,
+        }
+    }
+}
+
+/// Rejects intrinsics that break the bounds of a real camera ([`Camera::check_plausible`]:
+/// image sides up to [`matloc_core::camera::MAX_IMAGE_SIDE`], a field of view inside
+/// [`matloc_core::camera::FOV_RANGE_DEG`], the principal point near the image, bounded lens
+/// distortion), naming the field and the bound. Depends only on the camera, so it runs before
+/// the image is decoded.
+pub fn check_plausible(camera: &Camera) -> Result<(), CameraSpecError> {
+    camera
+        .check_plausible()
+        .map_err(CameraSpecError::Implausible)
 }
 
 /// The supported COLMAP model names, comma-separated.
@@ -148,13 +180,18 @@ struct ColmapParams {
     params: Vec<f64>,
 }
 
-/// `field` of `value` as a positive whole number.
-fn size_field(value: &Value, field: &'static str) -> Result<u32, CameraSpecError> {
-    let v = value.get(field).ok_or_else(|| CameraSpecError::Field {
-        field,
-        message: "missing".into(),
-    })?;
-    v.as_u64()
+/// A JSON number as a positive whole number of pixels: an integer, or a float with no
+/// fractional part (`160.0`), at most `u32::MAX`.
+fn size_value(v: &Value, field: &'static str) -> Result<u32, CameraSpecError> {
+    let whole = match v {
+        Value::Number(n) => n.as_u64().or_else(|| {
+            n.as_f64()
+                .filter(|f| f.fract() == 0.0 && *f >= 0.0 && *f <= f64::from(u32::MAX))
+                .map(|f| f as u64)
+        }),
+        _ => None,
+    };
+    whole
         .filter(|&n| n > 0 && n <= u64::from(u32::MAX))
         .map(|n| n as u32)
         .ok_or_else(|| CameraSpecError::Field {
@@ -163,12 +200,33 @@ fn size_field(value: &Value, field: &'static str) -> Result<u32, CameraSpecError
         })
 }
 
+/// `field` of `value` as a positive whole number.
+fn size_field(value: &Value, field: &'static str) -> Result<u32, CameraSpecError> {
+    let v = value.get(field).ok_or_else(|| CameraSpecError::Field {
+        field,
+        message: "missing".into(),
+    })?;
+    size_value(v, field)
+}
+
+/// Rewrites the size `fields` present in `value` as integers ([`size_value`]), so the typed
+/// readers take `160.0` as 160; a size that is not a positive whole number is an error naming
+/// the field.
+fn whole_sizes(value: &mut Value, fields: [&'static str; 2]) -> Result<(), CameraSpecError> {
+    for field in fields {
+        if let Some(v) = value.get_mut(field) {
+            *v = Value::from(size_value(v, field)?);
+        }
+    }
+    Ok(())
+}
+
 /// Reads intrinsics JSON: `{"model": "PINHOLE", "width": W, "height": H, "params": [...]}`
 /// (COLMAP names and parameter order), nerfstudio keys (`w`, `h`, `fl_x`, `fl_y`, `cx`, `cy`,
 /// optional `camera_model`, `k1 k2 p1 p2 k3`), or a matloc camera (`width`, `height`, `fx`,
 /// `fy`, `cx`, `cy`, optional `distortion`).
 pub fn parse_camera_json(text: &str) -> Result<Camera, CameraSpecError> {
-    let value: Value = serde_json::from_str(text).map_err(CameraSpecError::Json)?;
+    let mut value: Value = serde_json::from_str(text).map_err(CameraSpecError::Json)?;
     if !value.is_object() {
         return Err(CameraSpecError::Shape(format!("got {}", json_kind(&value))));
     }
@@ -207,6 +265,7 @@ pub fn parse_camera_json(text: &str) -> Result<Camera, CameraSpecError> {
         }
     }
     let (camera, model) = if value.get("w").is_some() || value.get("fl_x").is_some() {
+        whole_sizes(&mut value, ["w", "h"])?;
         let n: NerfstudioIntrinsics = serde_json::from_value(value)
             .map_err(|e| CameraSpecError::Shape(format!("nerfstudio intrinsics: {e}")))?;
         if n.k4 != 0.0 {
@@ -234,6 +293,7 @@ pub fn parse_camera_json(text: &str) -> Result<Camera, CameraSpecError> {
         };
         (camera, "nerfstudio")
     } else {
+        whole_sizes(&mut value, ["width", "height"])?;
         let camera: Camera = serde_json::from_value(value)
             .map_err(|e| CameraSpecError::Shape(format!("matloc camera: {e}")))?;
         (camera, "matloc")
@@ -304,6 +364,94 @@ mod tests {
         assert!(e.contains("matloc camera"), "{e}");
         assert!(err("[1, 2]").contains("an array"));
         assert!(err("{").contains("not valid JSON"));
+    }
+
+    #[test]
+    fn whole_valued_float_sizes_read_as_integers() {
+        let want = Camera::pinhole(160, 120, 150.0, 150.0, 80.0, 60.0).unwrap();
+        for text in [
+            r#"{"model": "PINHOLE", "width": 160.0, "height": 120.0, "params": [150, 150, 80, 60]}"#,
+            r#"{"w": 160.0, "h": 1.2e2, "fl_x": 150, "fl_y": 150, "cx": 80, "cy": 60}"#,
+            r#"{"width": 160.0, "height": 120, "fx": 150, "fy": 150, "cx": 80, "cy": 60}"#,
+        ] {
+            assert_eq!(parse_camera_json(text).unwrap(), want, "{text}");
+        }
+        for (text, field) in [
+            (
+                r#"{"model": "PINHOLE", "width": 160.5, "height": 120, "params": [150, 150, 80, 60]}"#,
+                "width",
+            ),
+            (
+                r#"{"w": 160, "h": 120.25, "fl_x": 150, "fl_y": 150, "cx": 80, "cy": 60}"#,
+                "h",
+            ),
+            (
+                r#"{"width": 160, "height": -120.0, "fx": 150, "fy": 150, "cx": 80, "cy": 60}"#,
+                "height",
+            ),
+            (
+                r#"{"width": 1e300, "height": 120, "fx": 150, "fy": 150, "cx": 80, "cy": 60}"#,
+                "width",
+            ),
+            (
+                r#"{"width": "160", "height": 120, "fx": 150, "fy": 150, "cx": 80, "cy": 60}"#,
+                "width",
+            ),
+        ] {
+            let e = parse_camera_json(text).unwrap_err();
+            assert_eq!(e.field(), Some(field), "{e}");
+            assert!(
+                e.to_string().contains(&format!("`{field}`"))
+                    && e.to_string().contains("positive whole number"),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn implausible_cameras_name_the_field_and_the_bound() {
+        let cases = [
+            (
+                r#"{"model": "PINHOLE", "width": 1000000000, "height": 750000000, "params": [150, 150, 80, 60]}"#,
+                "width",
+                "1..=65536",
+            ),
+            (
+                r#"{"model": "PINHOLE", "width": 160, "height": 120, "params": [1e308, 1e308, 80, 60]}"#,
+                "fx",
+                "0.5–170°",
+            ),
+            (
+                r#"{"model": "PINHOLE", "width": 160, "height": 120, "params": [150, 150, 1e308, -1e308]}"#,
+                "cx",
+                "0.25 × the image side",
+            ),
+            (
+                r#"{"model": "OPENCV", "width": 160, "height": 120, "params": [150, 150, 80, 60, 1e30, 0, 0, 0]}"#,
+                "distortion",
+                "4×",
+            ),
+            (
+                r#"{"model": "OPENCV", "width": 160, "height": 120, "params": [150, 150, 80, 60, 0, 0, 10, 0]}"#,
+                "p1",
+                "±0.1",
+            ),
+        ];
+        for (text, field, bound) in cases {
+            let camera = parse_camera_json(text).unwrap();
+            let e = check_plausible(&camera).unwrap_err();
+            assert_eq!(e.field(), Some(field), "{e}");
+            let msg = e.to_string();
+            assert!(
+                msg.contains(&format!("`{field}`")) && msg.contains(bound),
+                "{msg}"
+            );
+        }
+        let ok = parse_camera_json(
+            r#"{"model": "OPENCV", "width": 160, "height": 120, "params": [150, 150, 80, 60, -0.1, 0.01, 0.001, 0]}"#,
+        )
+        .unwrap();
+        check_plausible(&ok).unwrap();
     }
 
     #[test]
