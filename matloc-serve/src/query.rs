@@ -116,6 +116,18 @@ pub fn decode_rgb(bytes: &[u8], limits: DecodeLimits) -> Result<Image<f32>, Quer
     Ok(matloc_data::images::rgb_from_decoded(img))
 }
 
+/// The width and height a PNG or JPEG states in its header, without decoding the pixels;
+/// `None` when the bytes are neither or the header cannot be read.
+pub fn image_dimensions(bytes: &[u8]) -> Option<(u32, u32)> {
+    let format = image::guess_format(bytes).ok()?;
+    if !matches!(format, ImageFormat::Png | ImageFormat::Jpeg) {
+        return None;
+    }
+    ImageReader::with_format(Cursor::new(bytes), format)
+        .into_dimensions()
+        .ok()
+}
+
 /// `camera` for an image of `w`×`h` pixels: unchanged at its own size, rescaled when the image
 /// is a uniformly scaled copy (e.g. an `images_4/` folder), an error when the aspect differs.
 pub fn fit_to_image(camera: Camera, w: u32, h: u32, name: &str) -> Result<Camera, QueryError> {
@@ -218,6 +230,15 @@ mod tests {
             decode_rgb(&bytes, small),
             Err(QueryError::TooLarge { .. })
         ));
+    }
+
+    #[test]
+    fn dimensions_come_from_the_header() {
+        let bytes = png(20, 10);
+        assert_eq!(image_dimensions(&bytes), Some((20, 10)));
+        assert_eq!(image_dimensions(&bytes[..bytes.len() / 2]), Some((20, 10)));
+        assert_eq!(image_dimensions(&bytes[..10]), None);
+        assert_eq!(image_dimensions(b"hello"), None);
     }
 
     #[test]

@@ -5,11 +5,18 @@
 //! declared body size (413), admission (503 at once when `workers + queue` requests are
 //! already admitted, so memory never grows with load: only admitted requests keep their
 //! bodies), body parsing (4xx naming the part or field), a free worker (queue), then decoding
-//! and localization on a blocking thread. A request answered with an error before its body
+//! and localization on a blocking thread. The query camera is checked while the body is parsed
+//! (plausible intrinsics, a size the image's header matches or rescales to), so an impossible
+//! camera is answered 400 without taking a worker. A request answered with an error before its body
 //! was read has the rest of its body read and discarded first (bounded in bytes and time, a
 //! "lingering close"): a client still sending then gets the answer, not a broken pipe. Everything after admission runs under the timeout
 //! (504); a localization still running at the timeout keeps its worker until it ends, so the
 //! number of running localizations never exceeds `workers`.
+//!
+//! Every error response has a JSON body `{"status", "error"[, "field"]}`, those of axum's
+//! own routing (405, 404) included, and every `POST /v1/localize` response carries a
+//! `Server-Timing: total;dur=MS` header: the server's time on the request, in milliseconds,
+//! from the handler's start to the response.
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -20,6 +27,7 @@ use std::time::{Duration, Instant};
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
+use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use matloc_core::Camera;
@@ -29,9 +37,9 @@ use serde_json::{Value, json};
 use tokio::net::TcpListener;
 use tokio::sync::{Semaphore, oneshot};
 
-use crate::camera::parse_camera_json;
+use crate::camera::{CameraSpecError, check_plausible, parse_camera_json};
 use crate::metrics::{Metrics, Outcome};
-use crate::query::{DecodeLimits, decode_rgb, to_map_resolution};
+use crate::query::{DecodeLimits, decode_rgb, fit_to_image, image_dimensions, to_map_resolution};
 use crate::record::localization_record;
 
 /// Server settings.
@@ -145,16 +153,80 @@ impl Service {
     }
 }
 
-/// The routes: `POST /v1/localize`, `GET /healthz`, `GET /metrics`.
+/// The routes: `POST /v1/localize`, `GET /healthz`, `GET /metrics`; every error answered
+/// with a JSON body.
 pub fn router(service: Arc<Service>) -> Router {
     let limit = service.config.max_body_bytes;
-    Router::new()
+    let routes = Router::new()
         .route("/v1/localize", post(localize))
         .route("/healthz", get(healthz))
         .route("/metrics", get(metrics))
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(limit))
-        .with_state(service)
+        .with_state(service);
+    // Around the finished routes, so it sees their responses as sent (a 405 with its `Allow`
+    // header, which a layer on the routes themselves would see before it is added).
+    Router::new()
+        .fallback_service(routes)
+        .layer(axum::middleware::from_fn(json_errors))
+}
+
+/// Longest error body of axum's own read back to be wrapped in JSON; a longer one is replaced
+/// by the status's reason.
+const MAX_PLAIN_ERROR_BYTES: usize = 4096;
+
+/// Gives an error response without a JSON body (axum's 405 for a wrong method, or a
+/// rejection's plain text) the JSON body of every other error: `status` is the HTTP reason in
+/// snake case, `error` says what happened. Headers such as `Allow` are kept.
+async fn json_errors(request: Request, next: Next) -> Response {
+    let method = request.method().clone();
+    let path = request.uri().path().to_owned();
+    let response = next.run(request).await;
+    let status = response.status();
+    let is_json = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return response;
+    }
+    let (mut parts, body) = response.into_parts();
+    let reason = status.canonical_reason().unwrap_or("error");
+    let text = axum::body::to_bytes(body, MAX_PLAIN_ERROR_BYTES)
+        .await
+        .ok()
+        .map(|b| String::from_utf8_lossy(&b).trim().to_owned())
+        .filter(|t| !t.is_empty());
+    let error = if status == StatusCode::METHOD_NOT_ALLOWED {
+        let allowed = parts
+            .headers
+            .get(header::ALLOW)
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("")
+            .to_owned();
+        format!("method {method} is not allowed on {path} (allowed: {allowed})")
+    } else {
+        text.unwrap_or_else(|| reason.to_owned())
+    };
+    let name: String = reason
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric() || *c == ' ')
+        .map(|c| {
+            if c == ' ' {
+                '_'
+            } else {
+                c.to_ascii_lowercase()
+            }
+        })
+        .collect();
+    let body = json!({"status": name, "error": error}).to_string();
+    parts.headers.remove(header::CONTENT_LENGTH);
+    parts.headers.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/json"),
+    );
+    Response::from_parts(parts, axum::body::Body::from(body))
 }
 
 /// Serves `service` on `listener` until `shutdown` completes, then stops accepting
@@ -293,12 +365,14 @@ impl Drop for ServerHandle {
     }
 }
 
-/// An error response: `{"status": ..., "error": ..., "field": ...}`.
+/// An error response: `{"status": ..., "error": ..., "field": ...}`, with `camera_field`
+/// naming the field inside the `camera` part where one is at fault.
 struct ApiError {
     status: StatusCode,
     outcome: Outcome,
     message: String,
     field: Option<&'static str>,
+    camera_field: Option<&'static str>,
 }
 
 impl ApiError {
@@ -308,6 +382,15 @@ impl ApiError {
             outcome: Outcome::BadRequest,
             message: message.into(),
             field: Some(field),
+            camera_field: None,
+        }
+    }
+
+    /// A 400 for the `camera` part.
+    fn camera(e: CameraSpecError) -> Self {
+        ApiError {
+            camera_field: e.field(),
+            ..ApiError::bad("camera", format!("part `camera`: {e}"))
         }
     }
 
@@ -317,6 +400,7 @@ impl ApiError {
             outcome: Outcome::PayloadTooLarge,
             message: format!("the request body is larger than the {limit}-byte limit"),
             field: Some("body"),
+            camera_field: None,
         }
     }
 
@@ -324,6 +408,9 @@ impl ApiError {
         let mut body = json!({"status": self.outcome.name(), "error": self.message});
         if let Some(f) = self.field {
             body["field"] = json!(f);
+        }
+        if let Some(f) = self.camera_field {
+            body["camera_field"] = json!(f);
         }
         let mut r = (self.status, axum::Json(body)).into_response();
         if self.status == StatusCode::SERVICE_UNAVAILABLE {
@@ -388,7 +475,12 @@ async fn localize(State(s): State<Arc<Service>>, request: Request) -> Response {
             (e.outcome, e.response())
         }
     };
-    s.metrics.observe(outcome, start.elapsed());
+    let elapsed = start.elapsed();
+    s.metrics.observe(outcome, elapsed);
+    let mut response = response;
+    if let Ok(v) = HeaderValue::from_str(&format!("total;dur={:.3}", elapsed.as_secs_f64() * 1e3)) {
+        response.headers_mut().insert("server-timing", v);
+    }
     response
 }
 
@@ -410,6 +502,7 @@ async fn handle(
             outcome: Outcome::ShuttingDown,
             message: "the server is shutting down".into(),
             field: None,
+            camera_field: None,
         });
     }
     let (head, mut body) = request.into_parts();
@@ -445,6 +538,7 @@ async fn handle(
                 content_type
             ),
             field: Some("content-type"),
+            camera_field: None,
         });
     }
     let Ok(admitted) = s.admission.clone().try_acquire_owned() else {
@@ -457,6 +551,7 @@ async fn handle(
                 s.config.workers, s.config.queue
             ),
             field: None,
+            camera_field: None,
         });
     };
     let timeout = s.config.timeout;
@@ -474,6 +569,7 @@ async fn handle(
                 outcome: Outcome::ShuttingDown,
                 message: "the server is shutting down".into(),
                 field: None,
+                camera_field: None,
             })?;
         drop(queued);
         let queue_s = start.elapsed().as_secs_f64();
@@ -490,6 +586,7 @@ async fn handle(
             outcome: Outcome::Error,
             message: "the localization task failed".into(),
             field: None,
+            camera_field: None,
         })?
     };
     match tokio::time::timeout(timeout, work).await {
@@ -502,6 +599,7 @@ async fn handle(
                 timeout.as_secs_f64()
             ),
             field: None,
+            camera_field: None,
         }),
     }
 }
@@ -568,6 +666,7 @@ async fn read_parts(request: Request) -> Result<Parts, ApiError> {
             outcome: Outcome::BadRequest,
             message: format!("multipart body: {}", e.body_text()),
             field: Some("body"),
+            camera_field: None,
         })?;
     let (mut name, mut image, mut camera) = (None, None, None);
     loop {
@@ -589,10 +688,9 @@ async fn read_parts(request: Request) -> Result<Parts, ApiError> {
                     .text()
                     .await
                     .map_err(|e| multipart_error("camera", e))?;
-                camera = Some(
-                    parse_camera_json(&text)
-                        .map_err(|e| ApiError::bad("camera", format!("part `camera`: {e}")))?,
-                );
+                let parsed = parse_camera_json(&text).map_err(ApiError::camera)?;
+                check_plausible(&parsed).map_err(ApiError::camera)?;
+                camera = Some(parsed);
             }
             "name" => {
                 let text = field.text().await.map_err(|e| multipart_error("name", e))?;
@@ -611,8 +709,15 @@ async fn read_parts(request: Request) -> Result<Parts, ApiError> {
         return Err(ApiError::bad("image", "part `image` is empty"));
     }
     let camera = camera.ok_or_else(|| ApiError::bad("camera", "missing part `camera`"))?;
+    let name = name.unwrap_or_else(|| "query".into());
+    // The image's size from its header: a camera it neither matches nor rescales to is
+    // answered now. An unreadable header is left to the decoder, which names the problem.
+    if let Some((w, h)) = image_dimensions(&image) {
+        fit_to_image(camera, w, h, &name)
+            .map_err(|e| ApiError::bad("camera", format!("part `camera`: {e}")))?;
+    }
     Ok(Parts {
-        name: name.unwrap_or_else(|| "query".into()),
+        name,
         image,
         camera,
     })
@@ -648,6 +753,7 @@ fn localize_parts(
         outcome: Outcome::Error,
         message: format!("localizing {}: {e}", parts.name),
         field: None,
+        camera_field: None,
     })?;
     let localize_s = t.elapsed().as_secs_f64();
     let outside = result
@@ -665,6 +771,7 @@ fn localize_parts(
         outcome: Outcome::Error,
         message: format!("writing the record: {e}"),
         field: None,
+        camera_field: None,
     })?;
     if let Value::Object(obj) = &mut record {
         obj.insert("status".into(), json!(outcome.name()));

@@ -277,10 +277,19 @@ fn malformed_requests_get_a_4xx_naming_the_field() {
     }
     let (status, text) = read_response(s);
     assert_eq!(status, 413, "{text}");
-    let (status, _) = get(&agent, &u);
-    assert_eq!(status, 405);
+    // axum's own errors have JSON bodies too.
+    let (status, text) = get(&agent, &u);
+    assert_eq!(status, 405, "{text}");
+    let v = json(&text);
+    assert_eq!(v["status"], "method_not_allowed", "{text}");
+    let error = v["error"].as_str().unwrap();
+    assert!(error.contains("GET") && error.contains("POST"), "{error}");
+    let (status, text) = post(&agent, &url(&server, "/healthz"), "text/plain", b"x");
+    assert_eq!(status, 405, "{text}");
+    assert_eq!(json(&text)["status"], "method_not_allowed", "{text}");
     let (status, text) = get(&agent, &url(&server, "/v2/nothing"));
     assert_eq!(status, 404, "{text}");
+    assert_eq!(json(&text)["status"], "not_found", "{text}");
     // The server is still up and counted every case.
     let (status, text) = get(&agent, &url(&server, "/healthz"));
     assert_eq!((status, json(&text)["status"].as_str()), (200, Some("ok")));
