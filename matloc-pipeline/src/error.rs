@@ -23,6 +23,11 @@ pub enum PipelineError {
     /// Camera model problem (e.g. a resolution the intrinsics cannot be rescaled to).
     #[error("camera: {0}")]
     Camera(#[from] CameraError),
+    /// The query's intrinsics are well formed but no real camera has them (a principal point
+    /// outside the image, tangential distortion far beyond a lens's, a field of view no lens
+    /// gives): rejected before localizing, naming the field and the bound.
+    #[error("implausible query camera: {0}")]
+    ImplausibleCamera(#[from] matloc_core::ImplausibleCamera),
     /// The query image does not have the camera's size or is not RGB.
     #[error(
         "query image is {}×{} with {} channels, the camera is {}×{} (RGB expected)",

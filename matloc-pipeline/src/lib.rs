@@ -11,7 +11,8 @@
 //!   map loaded behind the stage traits.
 //! - [`build`]: map building, one file per stage, resumable.
 //! - [`baselines`], [`methods`]: rendered-RGB + keypoints, iNeRF and curriculum iNeRF from the
-//!   same coarse poses and map as MatLoc, and one entry point for every method.
+//!   same coarse poses and map as MatLoc, and one entry point for every method, which refuses
+//!   a pose outside the map's [`volume`].
 //! - [`eval`]: the paper's Tables 1–4 and diagnostics.
 //!
 //! The command-line tool (`matloc`) only parses arguments, draws progress and plots, and calls
@@ -27,6 +28,7 @@ pub mod gt;
 pub mod localizer;
 pub mod map;
 pub mod methods;
+pub mod volume;
 
 pub use config::MapConfig;
 pub use error::PipelineError;

@@ -20,6 +20,7 @@ use crate::error::PipelineError;
 use crate::localizer::HypothesisReport;
 use crate::localizer::options::query_at_working_size;
 use crate::map::load::LoadedMap;
+use crate::volume::MappedVolume;
 
 /// A localization method.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -125,7 +126,47 @@ pub struct MethodOptions {
 }
 
 /// Localizes `image` (taken with `camera`) with `method` on `map`.
+///
+/// Intrinsics no real camera has ([`Camera::check_plausible`]) are rejected before anything
+/// runs ([`PipelineError::ImplausibleCamera`], naming the field and the bound). A pose whose
+/// camera lies outside the map's [`MappedVolume`] is refused, whichever method solved it: the
+/// answer is "not localized", the hypothesis that had been accepted carries the reason as its
+/// failure, and the reason is logged.
 pub fn localize_with(
+    map: &LoadedMap,
+    method: Method,
+    name: &str,
+    image: &Image<f32>,
+    camera: &Camera,
+    options: &MethodOptions,
+) -> Result<QueryResult, PipelineError> {
+    camera.check_plausible()?;
+    let mut result = localize_method(map, method, name, image, camera, options)?;
+    if let Some(pose) = result.cam_from_world
+        && let Some(reason) = MappedVolume::of_map(&map.partition, map.structure.as_ref())
+            .and_then(|v| v.refusal(&pose))
+    {
+        tracing::info!(
+            query = name,
+            method = method.name(),
+            "pose refused: {reason}"
+        );
+        result.localized = false;
+        result.cam_from_world = None;
+        result.camera_center = None;
+        if let Some(c) = result.confidence.as_mut() {
+            *c = 0.0;
+        }
+        for h in result.hypotheses.iter_mut().filter(|h| h.accepted) {
+            h.accepted = false;
+            h.failure = Some(reason.clone());
+        }
+    }
+    Ok(result)
+}
+
+/// [`localize_with`] before the shared checks.
+fn localize_method(
     map: &LoadedMap,
     method: Method,
     name: &str,
@@ -319,6 +360,12 @@ fn localize_structure(
                         Some("no training image looks the way this hypothesis does".into())
                     } else if tried.iter().any(|s| s.unseen) {
                         Some("no training image looks the way the solved pose does".into())
+                    } else if tried.iter().any(|s| s.unconfirmed) {
+                        Some(
+                            "the consensus covers a small part of the image and the map points \
+                             in view disagree with the rest (a mirrored image?)"
+                                .into(),
+                        )
                     } else {
                         None
                     };
