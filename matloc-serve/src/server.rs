@@ -31,8 +31,8 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use matloc_core::Camera;
-use matloc_pipeline::LoadedMap;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use matloc_pipeline::{LoadedMap, PipelineError};
 use serde_json::{Value, json};
 use tokio::net::TcpListener;
 use tokio::sync::{Semaphore, oneshot};
@@ -748,12 +748,16 @@ fn localize_parts(
         &camera,
         &MethodOptions::default(),
     )
-    .map_err(|e| ApiError {
-        status: StatusCode::INTERNAL_SERVER_ERROR,
-        outcome: Outcome::Error,
-        message: format!("localizing {}: {e}", parts.name),
-        field: None,
-        camera_field: None,
+    .map_err(|e| match e {
+        // The camera as brought to the map's resolution (checked as given while parsing).
+        PipelineError::ImplausibleCamera(p) => ApiError::camera(CameraSpecError::Implausible(p)),
+        e => ApiError {
+            status: StatusCode::INTERNAL_SERVER_ERROR,
+            outcome: Outcome::Error,
+            message: format!("localizing {}: {e}", parts.name),
+            field: None,
+            camera_field: None,
+        },
     })?;
     let localize_s = t.elapsed().as_secs_f64();
     let outside = result
