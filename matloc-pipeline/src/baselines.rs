@@ -380,6 +380,28 @@ fn photometric_loss(
     Ok(sum / target.len().max(1) as f64)
 }
 
+/// What iNeRF minimises, measured on a fixed grid: the mean squared colour error between
+/// `query` and `model`'s render at `cam_from_world`, over pixel centres every `stride` pixels.
+pub fn photometric_error(
+    model: &NerfModel,
+    camera: &Camera,
+    query: &Image<f32>,
+    cam_from_world: &Pose,
+    stride: usize,
+) -> Result<f64, PipelineError> {
+    check_query(camera, query)?;
+    let stride = stride.max(1);
+    let mut pixels = Vec::new();
+    let mut target = Vec::new();
+    for r in (0..query.height()).step_by(stride) {
+        for c in (0..query.width()).step_by(stride) {
+            pixels.push(Point2::new(c as f64 + 0.5, r as f64 + 0.5));
+            target.extend_from_slice(query.pixel(c, r));
+        }
+    }
+    photometric_loss(model, camera, cam_from_world, &pixels, &target)
+}
+
 /// iNeRF / curriculum iNeRF from a coarse pose. Never refuses: it always returns the pose it
 /// ends at (as the method does).
 pub fn inerf(

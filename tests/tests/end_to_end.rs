@@ -479,6 +479,81 @@ fn rgb_keypoints_renders_again_at_the_pose_it_solved() {
     );
 }
 
+/// `truth` moved by `metres` and turned by `degrees`, in a direction that differs per `i`.
+fn offset_start(truth: &Pose, i: usize, metres: f64, degrees: f64) -> Pose {
+    let a = i as f64 * 2.399_963;
+    let t = nalgebra::Vector3::new(a.cos(), a.sin(), 0.3 * (2.0 * a).sin()).normalize() * metres;
+    let axis = nalgebra::Unit::new_normalize(nalgebra::Vector3::new(a.sin(), 0.5, a.cos()));
+    let r = nalgebra::UnitQuaternion::from_axis_angle(&axis, degrees.to_radians());
+    let wfc = truth.inverse();
+    Pose::from_parts(
+        nalgebra::Translation3::from(wfc.translation.vector + t),
+        wfc.rotation * r,
+    )
+    .inverse()
+}
+
+/// The paper's photometric baselines on the built map: iNeRF (300 iterations) and curriculum
+/// iNeRF (200, coarse to fine) from starts 0.4 m / 2° off four test views lower the
+/// photometric error they minimise and stay near the truth; through `localize_with`, from the
+/// place predictor's first hypothesis, each returns a pose (never a refusal).
+#[test]
+fn inerf_and_curriculum_inerf_lower_the_photometric_error_from_a_near_start() {
+    use matloc_pipeline::baselines::{InerfOptions, inerf, photometric_error};
+    use rand::SeedableRng;
+    let b = built();
+    let map = LoadedMap::open(&b.map_dir).unwrap();
+    let model = map.nerf(0).unwrap();
+    let frames: Vec<_> = b.dataset.split(Split::Test).take(4).collect();
+    for (name, options) in [
+        ("iNeRF", InerfOptions::inerf()),
+        ("curriculum iNeRF", InerfOptions::curriculum()),
+    ] {
+        let mut report = Vec::new();
+        for (i, f) in frames.iter().enumerate() {
+            let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
+            let start = offset_start(&f.cam_from_world, i, 0.4, 2.0);
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(i as u64);
+            let out = inerf(model, &camera, &image, &start, &options, &mut rng).unwrap();
+            assert_eq!(out.iterations, options.iterations);
+            let p = out.cam_from_world.expect("iNeRF always returns a pose");
+            let loss = |p: &Pose| photometric_error(model, &camera, &image, p, 2).unwrap();
+            report.push((
+                loss(&start),
+                loss(&p),
+                translation_error_m(&p, &f.cam_from_world),
+                rotation_error_deg(&p, &f.cam_from_world),
+            ));
+        }
+        eprintln!("tiny, {name} from 0.4 m / 2° (error before, after; m, deg after): {report:.4?}");
+        for &(before, after, t, r) in &report {
+            assert!(
+                after < before,
+                "{name}: photometric error {before} -> {after}"
+            );
+            assert!(t < 1.0 && r < 5.0, "{name}: ended {t:.3} m / {r:.2}° off");
+        }
+    }
+    let f = frames[0];
+    let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
+    for method in [Method::Inerf, Method::CurriculumInerf] {
+        let r = localize_with(
+            &map,
+            method,
+            "q",
+            &image,
+            &camera,
+            &MethodOptions::default(),
+        )
+        .unwrap();
+        assert!(r.cam_from_world.is_some(), "{method} refused");
+        assert_eq!(
+            r.iterations,
+            if method == Method::Inerf { 300 } else { 200 }
+        );
+    }
+}
+
 #[test]
 fn a_perfect_encoder_bounds_what_matching_pnp_and_refinement_reach() {
     let b = built();
@@ -1477,4 +1552,87 @@ fn structure_retrieval_localizes_from_a_start_that_looks_elsewhere() {
     assert!(with * 10 >= test.len() * 8, "{with} of {}", test.len());
     assert!(with > without, "{with} vs {without}");
     assert_eq!(wrong, 0);
+}
+
+/// A test view mirrored (top to bottom, or left to right) is an image no camera takes: the
+/// default method returns no pose for any of them. Intrinsics no camera has are rejected before
+/// localizing, naming the field; with a focal length 10× too long, any pose returned lies in
+/// the mapped volume.
+#[test]
+fn mirrored_views_and_impossible_intrinsics_get_no_pose() {
+    let b = built();
+    let map = LoadedMap::open(&b.map_dir).unwrap();
+    let options = MethodOptions::default();
+    let volume =
+        matloc_pipeline::volume::MappedVolume::of_map(&map.partition, map.structure.as_ref())
+            .expect("the map has a volume");
+    let (mut mirrored_accepted, mut straight_ok) = (Vec::new(), 0);
+    for f in b.dataset.split(Split::Test) {
+        let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
+        let (w, h, c) = image.shape();
+        for vertical in [true, false] {
+            let mut m = Image::new(w, h, c);
+            for y in 0..h {
+                for x in 0..w {
+                    let (sx, sy) = if vertical {
+                        (x, h - 1 - y)
+                    } else {
+                        (w - 1 - x, y)
+                    };
+                    m.pixel_mut(x, y).copy_from_slice(image.pixel(sx, sy));
+                }
+            }
+            let r = localize_with(&map, Method::DEFAULT, "mirror", &m, &camera, &options).unwrap();
+            if let Some(p) = r.cam_from_world {
+                mirrored_accepted.push((vertical, r.inliers, matloc_core::pose::camera_center(&p)));
+            }
+        }
+        let r = localize_with(&map, Method::DEFAULT, "q", &image, &camera, &options).unwrap();
+        straight_ok += usize::from(
+            r.cam_from_world
+                .is_some_and(|p| within(&p, &f.cam_from_world, 0.25, 2.0)),
+        );
+        let far = matloc_core::Camera {
+            fx: camera.fx * 10.0,
+            fy: camera.fy * 10.0,
+            ..camera
+        };
+        let r = localize_with(&map, Method::DEFAULT, "long", &image, &far, &options).unwrap();
+        if let Some(p) = r.cam_from_world {
+            let centre = matloc_core::pose::camera_center(&p);
+            assert!(
+                volume.contains(&centre),
+                "a 10× focal gave a camera at {centre}"
+            );
+        }
+        for (field, bad) in [
+            (
+                "cx",
+                matloc_core::Camera {
+                    cx: -5000.0,
+                    ..camera
+                },
+            ),
+            (
+                "p1",
+                matloc_core::Camera {
+                    distortion: matloc_core::Distortion {
+                        p1: 10.0,
+                        ..camera.distortion
+                    },
+                    ..camera
+                },
+            ),
+        ] {
+            match localize_with(&map, Method::DEFAULT, "bad", &image, &bad, &options) {
+                Err(PipelineError::ImplausibleCamera(e)) => assert_eq!(e.field(), field, "{e}"),
+                other => panic!("{field}: expected an implausible camera, got {other:?}"),
+            }
+        }
+    }
+    eprintln!(
+        "mirrored views accepted: {mirrored_accepted:?}; straight views within 0.25 m: {straight_ok}"
+    );
+    assert!(mirrored_accepted.is_empty(), "{mirrored_accepted:?}");
+    assert!(straight_ok >= 8, "{straight_ok}");
 }
