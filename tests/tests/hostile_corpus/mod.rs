@@ -48,10 +48,12 @@ pub fn build_corpus(root: &Path) -> Vec<Case> {
     colmap_text_cases(&mut g, &base);
     colmap_binary_cases(&mut g, &base);
     image_cases(&mut g, &base);
+    decode_cases(&mut g, &base);
     npy_cases(&mut g, &base);
     ply_cases(&mut g, &base);
     meganerf_cases(&mut g, &base);
     map_cases(&mut g);
+    built_map_cases(&mut g, &base);
     config_cases(&mut g);
     g.cases
 }
@@ -165,7 +167,7 @@ impl Gen {
         });
     }
 
-    /// `matloc dataset info --deep PATH`.
+    /// `matloc dataset info PATH` (every image and depth map decoded).
     fn info(
         &mut self,
         category: &'static str,
@@ -175,12 +177,7 @@ impl Gen {
         must_fail: bool,
         names: &[&str],
     ) {
-        let args = vec![
-            "dataset".into(),
-            "info".into(),
-            "--deep".into(),
-            path.as_os_str().to_owned(),
-        ];
+        let args = vec!["dataset".into(), "info".into(), path.as_os_str().to_owned()];
         self.push(
             category,
             name,
@@ -1321,6 +1318,190 @@ fn image_cases(g: &mut Gen, base: &Base) {
 }
 
 // ---------------------------------------------------------------------------------------------
+// Images and depth maps whose header is sound and whose data is not: `dataset info` decodes
+// them, and `map build` refuses them before it writes anything.
+
+/// The cheapest map build that completes on the `tiny` world (seconds): a few NeRF steps on a
+/// small hash table, a few encoder steps, one place epoch, no rendered place views.
+const CHEAP_MAP_CONFIG: &str = r#"{
+  "nerf": {"steps": 80, "checkpoint_every": 80,
+    "model_overrides": {"field": {"log2_table_size": 12, "max_resolution": 128},
+      "train": {"batch_rays": 256, "march": {"steps": 64, "max_samples": 16},
+                "occupancy_warmup_steps": 8},
+      "render": {"march": {"steps": 64}}}},
+  "structure": {"triangulate": {"max_keypoints": 300}},
+  "encoder": {"train": {"steps": 5, "head_phase": {"steps": 0}}},
+  "place": {"rendered": {"per_view": 0}, "train": {"epochs": 1}},
+  "calibration": {"max_views": 2}
+}"#;
+
+/// A JPEG of the repository's fixtures (320×240, the aspect of the `tiny` world's 160×120).
+fn fixture_jpeg() -> Vec<u8> {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("fixtures/outside-smoke/survey/images/survey_00001.jpg");
+    fs::read(p).unwrap()
+}
+
+fn decode_cases(g: &mut Gen, base: &Base) {
+    const C: &str = "decode";
+    let stem = Path::new(&base.image_names[1])
+        .file_stem()
+        .unwrap()
+        .to_string_lossy()
+        .into_owned();
+    // Frame 1's image (or depth map, `depth`) replaced by `bytes` under `file` (a path
+    // relative to the dataset), then `dataset info` and, with `build`, `map build`.
+    let put = |g: &mut Gen,
+               label: &str,
+               file: String,
+               depth: bool,
+               bytes: Vec<u8>,
+               must: bool,
+               build: bool| {
+        for build in [false, true].into_iter().filter(|&b| !b || build) {
+            let dir = g.dir(C);
+            let mut t = base.transforms.clone();
+            let key = if depth {
+                "depth_file_path"
+            } else {
+                "file_path"
+            };
+            let old = t["frames"][1][key].as_str().unwrap().to_string();
+            t["frames"][1][key] = json!(file);
+            if !depth {
+                for list in ["train_filenames", "test_filenames"] {
+                    for v in t[list].as_array_mut().unwrap() {
+                        if v.as_str() == Some(old.as_str()) {
+                            *v = json!(file);
+                        }
+                    }
+                }
+            }
+            base.dataset(&dir, &serde_json::to_vec_pretty(&t).unwrap());
+            let _ = fs::remove_file(dir.join(&old));
+            fs::write(dir.join(&file), &bytes).unwrap();
+            let name = Path::new(&file)
+                .file_name()
+                .unwrap()
+                .to_string_lossy()
+                .into_owned();
+            if build {
+                let config = dir.join("config.json");
+                fs::write(&config, CHEAP_MAP_CONFIG).unwrap();
+                let args: Vec<OsString> = vec![
+                    "map".into(),
+                    "build".into(),
+                    "--quiet".into(),
+                    "--data".into(),
+                    dir.clone().into_os_string(),
+                    "--out".into(),
+                    dir.join("map").into_os_string(),
+                    "--config".into(),
+                    config.into_os_string(),
+                ];
+                g.push(
+                    C,
+                    format!("map build: {label}"),
+                    dir,
+                    args,
+                    must,
+                    vec![name],
+                );
+            } else {
+                g.info(
+                    C,
+                    format!("dataset info: {label}"),
+                    dir.clone(),
+                    &dir,
+                    must,
+                    &[&name],
+                );
+            }
+        }
+    };
+    let png_name = format!("images/{stem}.png");
+    let good = fs::read(base.image(1)).unwrap();
+    put(
+        g,
+        "PNG truncated at half",
+        png_name.clone(),
+        false,
+        good[..good.len() / 2].to_vec(),
+        true,
+        true,
+    );
+    put(
+        g,
+        "IDAT that is not zlib",
+        png_name.clone(),
+        false,
+        png(160, 120, 2, 8, Some((0..200u8).collect())),
+        true,
+        true,
+    );
+    put(
+        g,
+        "IHDR 64000x48000 with a tiny IDAT",
+        png_name,
+        false,
+        png(64_000, 48_000, 2, 8, Some(zlib_stored(&[0; 64]))),
+        true,
+        true,
+    );
+    let jpeg = fixture_jpeg();
+    let jpg_name = format!("images/{stem}.jpg");
+    put(
+        g,
+        "JPEG (control)",
+        jpg_name.clone(),
+        false,
+        jpeg.clone(),
+        false,
+        false,
+    );
+    put(
+        g,
+        "JPEG truncated at 60 %",
+        jpg_name,
+        false,
+        jpeg[..jpeg.len() * 6 / 10].to_vec(),
+        true,
+        true,
+    );
+    let depth_name = format!("depth/{stem}.png");
+    put(
+        g,
+        "8-bit PNG as a depth map",
+        depth_name.clone(),
+        true,
+        png(160, 120, 0, 8, None),
+        true,
+        true,
+    );
+    for case in g.cases.iter_mut().rev().take(2) {
+        case.names.push("16-bit".into());
+    }
+    put(
+        g,
+        "RGB 16-bit PNG as a depth map",
+        depth_name.clone(),
+        true,
+        png(160, 120, 2, 16, None),
+        true,
+        false,
+    );
+    put(
+        g,
+        "16-bit grey PNG depth map (control)",
+        depth_name,
+        true,
+        png(160, 120, 0, 16, None),
+        false,
+        false,
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
 // .npy depth maps
 
 fn npy(descr: &str, fortran: bool, shape: &str, data: &[u8]) -> Vec<u8> {
@@ -1900,6 +2081,172 @@ fn map_cases(g: &mut Gen) {
                 args,
                 true,
                 vec!["map".into()],
+            );
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// A built map whose files are replaced consistently: the manifest's size and checksum updated
+// with them, so only parsing the files finds what is wrong.
+
+/// A safetensors container's header (JSON) and the byte offset its data starts at.
+fn safetensors_header(bytes: &[u8]) -> (Value, usize) {
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    (serde_json::from_slice(&bytes[8..8 + n]).unwrap(), 8 + n)
+}
+
+/// A safetensors container with `header` and the data bytes `data`.
+fn safetensors_bytes(header: &Value, data: &[u8]) -> Vec<u8> {
+    let mut h = serde_json::to_vec(header).unwrap();
+    while !h.len().is_multiple_of(8) {
+        h.push(b' ');
+    }
+    let mut out = (h.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(&h);
+    out.extend_from_slice(data);
+    out
+}
+
+/// Replaces map file `name` with `bytes` and updates its manifest entry to match.
+fn replace_consistently(map: &Path, name: &str, bytes: &[u8]) {
+    fs::write(map.join(name), bytes).unwrap();
+    let path = map.join("manifest.json");
+    let mut m: Value = serde_json::from_slice(&fs::read(&path).unwrap()).unwrap();
+    m["files"][name] = json!({"bytes": bytes.len(), "sha256": sha256_hex(bytes)});
+    fs::write(&path, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+}
+
+fn built_map_cases(g: &mut Gen, base: &Base) {
+    const C: &str = "map-content";
+    let built = g.root.join(C).join("built");
+    let config = g.root.join(C).join("config.json");
+    fs::create_dir_all(&built).unwrap();
+    fs::write(&config, CHEAP_MAP_CONFIG).unwrap();
+    let out = Command::new(super_bin())
+        .args(["map", "build", "--quiet", "--data"])
+        .arg(&base.data)
+        .arg("--out")
+        .arg(built.join("map"))
+        .arg("--config")
+        .arg(&config)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "building the corpus map: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let source = built.join("map");
+    let model = "blocks/0/model.safetensors";
+    let weights = fs::read(source.join(model)).unwrap();
+    let (header, data_at) = safetensors_header(&weights);
+    let hash = &header["hash_table"]["data_offsets"];
+    let (h0, h1) = (
+        data_at + hash[0].as_u64().unwrap() as usize,
+        data_at + hash[1].as_u64().unwrap() as usize,
+    );
+    let mut nan = weights.clone();
+    for c in nan[h0..h1].chunks_exact_mut(4) {
+        c.copy_from_slice(&f32::NAN.to_le_bytes());
+    }
+    let mut reshaped = header.clone();
+    let shape = reshaped["geo.0.weight"]["shape"]
+        .as_array()
+        .unwrap()
+        .clone();
+    reshaped["geo.0.weight"]["shape"] = json!([shape[1], shape[0]]);
+    let reshaped = safetensors_bytes(&reshaped, &weights[data_at..]);
+    let model_json = fs::read(source.join("blocks/0/model.json")).unwrap();
+    let mut selection: Value =
+        serde_json::from_slice(&fs::read(source.join("blocks/0/selection.json")).unwrap()).unwrap();
+    selection["dims"][0] = json!(1_000_000);
+    let mut partition: Value =
+        serde_json::from_slice(&fs::read(source.join("partition.json")).unwrap()).unwrap();
+    partition["blocks"] = json!([]);
+    let encoder = fs::read(source.join("blocks/0/encoder.safetensors")).unwrap();
+    let mut encoder_nan = encoder.clone();
+    let (eh, e_at) = safetensors_header(&encoder);
+    let bias = &eh["head.out.bias"]["data_offsets"];
+    let at = e_at + bias[0].as_u64().unwrap() as usize;
+    encoder_nan[at..at + 4].copy_from_slice(&f32::INFINITY.to_le_bytes());
+    let cases: Vec<(&str, &str, Vec<u8>, Vec<&str>)> = vec![
+        (
+            "model.safetensors truncated at half",
+            model,
+            weights[..weights.len() / 2].to_vec(),
+            vec!["model.safetensors", "header"],
+        ),
+        (
+            "model.safetensors hash table NaN",
+            model,
+            nan,
+            vec!["model.safetensors", "hash_table", "not finite"],
+        ),
+        (
+            "model.safetensors geo.0.weight transposed",
+            model,
+            reshaped,
+            vec!["model.safetensors", "geo.0.weight"],
+        ),
+        (
+            "encoder.safetensors with one infinite bias",
+            "blocks/0/encoder.safetensors",
+            encoder_nan,
+            vec!["encoder.safetensors", "head.out.bias", "not finite"],
+        ),
+        (
+            "half model.json",
+            "blocks/0/model.json",
+            model_json[..model_json.len() / 2].to_vec(),
+            vec!["model.json"],
+        ),
+        (
+            "empty partition.json",
+            "partition.json",
+            Vec::new(),
+            vec!["partition.json"],
+        ),
+        (
+            "partition.json without blocks",
+            "partition.json",
+            serde_json::to_vec_pretty(&partition).unwrap(),
+            vec!["partition.json", "blocks"],
+        ),
+        (
+            "selection naming dim 1000000",
+            "blocks/0/selection.json",
+            serde_json::to_vec_pretty(&selection).unwrap(),
+            vec!["selection.json", "dims", "1000000"],
+        ),
+    ];
+    for cmd in ["verify", "info"] {
+        let dir = g.dir(C);
+        copy_tree(&source, &dir.join("map"));
+        let args = vec!["map".into(), cmd.into(), dir.join("map").into_os_string()];
+        g.push(
+            C,
+            format!("map {cmd}: the built map (control)"),
+            dir,
+            args,
+            false,
+            vec![],
+        );
+    }
+    for (label, name, bytes, names) in &cases {
+        for cmd in ["verify", "info"] {
+            let dir = g.dir(C);
+            let map = dir.join("map");
+            copy_tree(&source, &map);
+            replace_consistently(&map, name, bytes);
+            let args = vec!["map".into(), cmd.into(), map.as_os_str().to_owned()];
+            g.push(
+                C,
+                format!("map {cmd}: {label}"),
+                dir,
+                args,
+                true,
+                names.iter().map(|s| s.to_string()).collect(),
             );
         }
     }
