@@ -186,21 +186,37 @@ fn info_and_verify(root: &Path) -> (std::process::Output, std::process::Output) 
 fn map_info_and_verify_fail_on_a_corrupted_file() {
     let dir = tempfile::tempdir().unwrap();
     hand_made_map(dir.path());
+    // Checksums match, but no file holds what its stage writes: both name each file.
     let (info, verify) = info_and_verify(dir.path());
-    assert!(info.status.success(), "{}", text(&info));
+    assert_eq!(info.status.code(), Some(1), "{}", text(&info));
     let out = String::from_utf8_lossy(&info.stdout);
     assert!(
-        out.contains("checksums ok") && out.contains("status       complete"),
+        out.contains("checksums ok")
+            && out.contains("contents     FAILED on 3 parts")
+            && out.contains("status       complete"),
         "{out}"
     );
-    assert!(verify.status.success(), "{}", text(&verify));
-    assert!(
-        text(&verify).contains(": ok (4 files, 3 stages)"),
-        "{}",
-        text(&verify)
-    );
+    assert_eq!(verify.status.code(), Some(1), "{}", text(&verify));
+    let lines: Vec<String> = String::from_utf8_lossy(&verify.stdout)
+        .lines()
+        .map(String::from)
+        .collect();
+    assert_eq!(lines.len(), 3, "{lines:?}");
+    for (file, field) in [
+        ("partition.json", "Partition"),
+        ("place/place.safetensors", "header"),
+        ("confidence.json", "CalibrationRecord"),
+    ] {
+        assert!(
+            lines
+                .iter()
+                .any(|l| l.contains(&format!("{file}: {field}: "))),
+            "{file}: {lines:?}"
+        );
+        assert!(text(&info).contains(file), "{}", text(&info));
+    }
 
-    // Same size, other content.
+    // Same size, other content: the checksum fails, and that file's content is not parsed.
     let file = dir.path().join("partition.json");
     let mut bytes = std::fs::read(&file).unwrap();
     bytes[2] ^= 1;
@@ -217,7 +233,7 @@ fn map_info_and_verify_fail_on_a_corrupted_file() {
         .lines()
         .map(String::from)
         .collect();
-    assert_eq!(lines.len(), 1, "{lines:?}");
+    assert_eq!(lines.len(), 3, "{lines:?}");
     assert!(
         lines[0].contains("partition.json: checksum mismatch"),
         "{lines:?}"
@@ -230,7 +246,7 @@ fn map_info_and_verify_fail_on_a_corrupted_file() {
     assert!(String::from_utf8_lossy(&info.stdout).contains("stages:"));
     assert!(text(&info).contains("confidence.json"), "{}", text(&info));
     assert_eq!(verify.status.code(), Some(1));
-    assert_eq!(String::from_utf8_lossy(&verify.stdout).lines().count(), 2);
+    assert_eq!(String::from_utf8_lossy(&verify.stdout).lines().count(), 3);
 }
 
 /// A manifest written by hand.
