@@ -287,6 +287,31 @@ pub fn read_config(path: &Path) -> Result<MapConfig> {
     Ok(config)
 }
 
+/// Runs `step`, which creates or resumes the map in `out`. When `out` held no map before and
+/// the step fails before any stage finished (the dataset or config refused), the manifest it
+/// created, and `out` itself if it was made for it and is empty, are removed: a refused build
+/// leaves nothing behind. A map with a finished stage is kept, to be resumed.
+fn leaving_nothing_if_refused<T>(out: &Path, step: impl FnOnce() -> Result<T>) -> Result<T> {
+    let manifest = out.join(matloc_pipeline::map::manifest::MANIFEST_FILE);
+    let (had_dir, had_map) = (out.exists(), manifest.exists());
+    let result = step();
+    if result.is_err() && !had_map && no_stage_finished(&manifest) {
+        let _ = std::fs::remove_file(&manifest);
+        if !had_dir {
+            let _ = std::fs::remove_dir(out);
+        }
+    }
+    result
+}
+
+/// Whether the manifest at `path` records no finished stage (or cannot be read).
+fn no_stage_finished(path: &Path) -> bool {
+    std::fs::read(path)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .is_none_or(|v| v["stages"].as_array().is_none_or(Vec::is_empty))
+}
+
 /// Reads the dataset, opens (or creates) the map, applies the split rule from the flags (or,
 /// without flags, the one the map records) and records it in the manifest.
 fn open_for_build(
@@ -321,11 +346,13 @@ pub fn build(
     split: &SplitArgs,
     quiet: bool,
 ) -> Result<()> {
-    let dataset = open_for_build(data, out, config, split)?;
     let t0 = Instant::now();
     let mut bars = StageBars::new(quiet);
-    let map = build_map(&dataset, out, config, &mut |e| bars.event(e))
-        .with_context(|| format!("building map {}", out.display()))?;
+    let map = leaving_nothing_if_refused(out, || {
+        let dataset = open_for_build(data, out, config, split)?;
+        build_map(&dataset, out, config, &mut |e| bars.event(e))
+            .with_context(|| format!("building map {}", out.display()))
+    })?;
     bars.finish()?;
     outln!(
         "map {} complete in {:.1} s ({} blocks, {:.1} MB)",
@@ -339,10 +366,12 @@ pub fn build(
 
 /// `matloc map plan`: the plan step, then the job list in MAP/plan.json.
 fn plan(data: &Path, out: &Path, config: &MapConfig, split: &SplitArgs, quiet: bool) -> Result<()> {
-    let dataset = open_for_build(data, out, config, split)?;
     let mut bars = StageBars::new(quiet);
-    let planned = plan_map(&dataset, out, config, &mut |e| bars.event(e))
-        .with_context(|| format!("planning map {}", out.display()))?;
+    let planned = leaving_nothing_if_refused(out, || {
+        let dataset = open_for_build(data, out, config, split)?;
+        plan_map(&dataset, out, config, &mut |e| bars.event(e))
+            .with_context(|| format!("planning map {}", out.display()))
+    })?;
     bars.finish()?;
     let mut map = planned.map;
     let absolute = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());

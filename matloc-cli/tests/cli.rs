@@ -400,3 +400,47 @@ fn impossible_config_values_are_named_when_the_file_is_read() {
         assert!(!dir.path().join("map").exists());
     }
 }
+
+/// A dataset refused by the plan step (an image that does not decode) leaves no map
+/// directory behind, for `map build` and `map plan`; an existing directory is kept.
+#[test]
+fn a_refused_build_leaves_nothing_behind() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let o = matloc(&["synth", "--preset", "tiny", "--out", data.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let first = std::fs::read_dir(data.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
+    let bytes = std::fs::read(&first).unwrap();
+    std::fs::write(&first, &bytes[..bytes.len() / 2]).unwrap();
+    let kept = dir.path().join("kept");
+    std::fs::create_dir(&kept).unwrap();
+    for (command, out) in [
+        ("build", dir.path().join("map")),
+        ("plan", dir.path().join("planned")),
+        ("build", kept.clone()),
+    ] {
+        let o = matloc(&[
+            "map",
+            command,
+            "--data",
+            data.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(
+            t.contains(first.file_name().unwrap().to_str().unwrap()),
+            "{t}"
+        );
+        if out == kept {
+            assert_eq!(std::fs::read_dir(&kept).unwrap().count(), 0, "{t}");
+        } else {
+            assert!(!out.exists(), "map {command} left {}: {t}", out.display());
+        }
+    }
+}
