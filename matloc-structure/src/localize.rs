@@ -63,15 +63,18 @@ pub struct StructureOptions {
     /// a last solve.
     pub align: AlignOptions,
     /// A consensus whose inliers' convex hull covers less than this share of the query image
-    /// is accepted only when the rest of the image confirms it (`min_agreement`): a mirrored
-    /// image matches the map only on mirror-symmetric parts of the scene, and their consensus
-    /// sits in one corner of it (tiny: at most 0.094 of the image; every pose of a real view,
-    /// its second flight included, at least 0.23). 0 = off.
+    /// is refused: a mirrored image matches the map only on mirror-symmetric parts of the
+    /// scene, and their consensus sits in one part of it (tiny's mirrored views: at most 0.19
+    /// of the image; every pose of a real view, its second flight included, at least 0.23).
+    /// 0 = off.
     pub min_inlier_hull: f64,
+    /// A consensus whose hull covers less than this share (and at least `min_inlier_hull`) is
+    /// accepted only when the rest of the image confirms it (`min_agreement`).
+    pub confirmed_hull: f64,
     /// Share of the map points the consensus's training images see that must agree with the
     /// query where the pose puts them (their training patch, laid into the query through the
     /// pose, correlating at [`AGREEING_ZNCC`] or more) for a consensus below
-    /// `min_inlier_hull` to be accepted (tiny's mirrored views: at most 0.41; real views at
+    /// `confirmed_hull` to be accepted (tiny's mirrored views: at most 0.53; real views at
     /// least 0.58). A map without its training images' gray values cannot confirm one.
     pub min_agreement: f64,
 }
@@ -99,6 +102,7 @@ impl Default for StructureOptions {
             query_sharpen: 1.0,
             align: AlignOptions::default(),
             min_inlier_hull: 0.15,
+            confirmed_hull: 0.3,
             min_agreement: 0.5,
         }
     }
@@ -131,8 +135,8 @@ pub struct StartReport {
     /// `max_view_angle_deg` of its viewing direction, so it was not accepted.
     pub unseen: bool,
     /// The pose passed the other tests, but its inliers cover less than `min_inlier_hull` of
-    /// the image and fewer than `min_agreement` of the map points in view agree with the
-    /// query, so it was not accepted.
+    /// the image, or less than `confirmed_hull` with fewer than `min_agreement` of the map
+    /// points in view agreeing with the query, so it was not accepted.
     #[serde(default)]
     pub unconfirmed: bool,
 }
@@ -523,8 +527,9 @@ fn solve_matches(
 }
 
 /// Whether `solve`'s consensus holds for the whole query: its inliers cover at least
-/// `options.min_inlier_hull` of the image, or at least `options.min_agreement` of the map
-/// points its training images see agree with the query under its pose ([`agreement`]).
+/// `options.confirmed_hull` of the image, or at least `options.min_inlier_hull` with at least
+/// `options.min_agreement` of the map points its training images see agreeing with the query
+/// under its pose ([`agreement`]).
 fn confirmed(
     map: &StructureMap,
     planes: &QueryPlanes,
@@ -538,10 +543,13 @@ fn confirmed(
     let inliers = (0..solve.matches.pixels.len())
         .filter(|&k| solve.inliers.get(k).copied().unwrap_or(false))
         .map(|k| solve.matches.pixels[k]);
-    if hull_fraction(inliers, camera.width, camera.height) >= options.min_inlier_hull {
+    let hull = hull_fraction(inliers, camera.width, camera.height);
+    if hull >= options.confirmed_hull {
         return true;
     }
-    agreement(map, planes, camera, &pose, &solve.images).is_some_and(|a| a >= options.min_agreement)
+    hull >= options.min_inlier_hull
+        && agreement(map, planes, camera, &pose, &solve.images)
+            .is_some_and(|a| a >= options.min_agreement)
 }
 
 /// Share of a `width` × `height` image covered by the convex hull of `points` (0 for fewer

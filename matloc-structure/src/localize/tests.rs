@@ -398,6 +398,7 @@ fn a_consensus_on_a_corner_of_the_image_that_the_rest_contradicts_is_refused() {
     };
     let off = run(&StructureOptions {
         min_inlier_hull: 0.0,
+        confirmed_hull: 0.0,
         ..StructureOptions::default()
     });
     let pose = off.cam_from_world.expect("accepted with the check off");
