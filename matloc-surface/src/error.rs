@@ -73,6 +73,9 @@ pub enum SurfaceError {
         /// What is wrong.
         reason: String,
     },
+    /// The training cameras saw no surface point to sample virtual viewpoints over.
+    #[error("virtual viewpoints: the training cameras saw no finite surface point")]
+    NoSurfaceSeen,
     /// A frame index outside the dataset.
     #[error("no frame {0} in the dataset")]
     NoFrame(usize),

@@ -13,6 +13,8 @@
 //! - [`densify`] and [`triangulate`] are the two algorithms;
 //! - [`sunlight`] finds the cast shadows of the map's sun in the training images and lifts them
 //!   ([`SunlightConfig`]);
+//! - [`viewpoints`] samples virtual camera poses beyond the survey over the height field of
+//!   the surface the training cameras saw ([`VirtualViewsConfig`], [`sample_viewpoints`]);
 //! - [`error`] holds [`SurfaceError`].
 
 pub mod config;
@@ -22,6 +24,7 @@ pub mod kind;
 pub mod source;
 pub mod sunlight;
 pub mod triangulate;
+pub mod viewpoints;
 
 pub use config::{SurfaceChoice, SurfaceConfig, TriangulateConfig};
 pub use error::SurfaceError;
@@ -29,3 +32,4 @@ pub use kind::SurfaceKind;
 pub use source::{FrameSurfaces, SurfacePlan, plan};
 pub use sunlight::SunlightConfig;
 pub use triangulate::triangulate;
+pub use viewpoints::{VirtualViewsConfig, sample_viewpoints};
