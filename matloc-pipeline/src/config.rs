@@ -5,7 +5,7 @@ use matloc_encoder::{EncoderTrainConfig, HeadPhaseConfig};
 use matloc_partition::{PoseAwareConfig, SampleConfig};
 use matloc_place::{GroupConfig, PlaceModel, TrainConfig};
 use matloc_select::GreedySearch;
-use matloc_surface::{SunlightConfig, SurfaceConfig};
+use matloc_surface::{SunlightConfig, SurfaceConfig, VirtualViewsConfig};
 use serde::{Deserialize, Serialize};
 
 use crate::gt::{PerturbKind, Perturbation};
@@ -43,6 +43,14 @@ pub struct MapConfig {
     /// maps from before it resume unchanged).
     #[serde(skip_serializing_if = "SunlightConfig::is_default")]
     pub sunlight: SunlightConfig,
+    /// Virtual viewpoints beyond the survey: poses sampled over the ground the training
+    /// cameras saw (`matloc_surface::viewpoints`; off by default, and left out of the stored
+    /// config while it is the default, so maps from before it resume unchanged).
+    #[serde(
+        rename = "virtual",
+        skip_serializing_if = "VirtualViewsConfig::is_default"
+    )]
+    pub virtual_views: VirtualViewsConfig,
     /// Localizer settings stored with the map (the confidence model is replaced by the
     /// calibrated one when the map is loaded).
     pub localize: LocalizeOptions,
@@ -51,7 +59,8 @@ pub struct MapConfig {
 impl MapConfig {
     /// Checks the values no stage can run with, naming each field, its value and the bound:
     /// a build with no NeRF steps, an empty feature selection, no place hypotheses or no
-    /// render/match pass, a matching window outside `[0, 1]`, place training without epochs.
+    /// render/match pass, a matching window outside `[0, 1]`, place training without epochs,
+    /// a `virtual.*` setting out of range ([`VirtualViewsConfig::problems`]).
     /// The build's plan step calls it before anything is written (and so does the CLI when it
     /// reads a config file). `localize.render_steps = 0` is valid: each model's own setting.
     /// The error is every offending field, `; `-separated.
@@ -99,6 +108,9 @@ impl MapConfig {
             c.localize.window_fraction.to_string(),
             "must be within [0, 1] of the image width (0: global matching)",
         );
+        for p in c.virtual_views.problems() {
+            bad.push(format!("`{}` = {}: {}", p.field, p.value, p.bound));
+        }
         if bad.is_empty() {
             Ok(())
         } else {
@@ -107,8 +119,8 @@ impl MapConfig {
     }
 
     /// The default config as JSON with every section, also those a stored config leaves out
-    /// while they are at their default (`sunlight`): what `matloc map config --print-default`
-    /// shows.
+    /// while they are at their default (`sunlight`, `virtual`): what `matloc map config
+    /// --print-default` shows.
     pub fn documented_default() -> serde_json::Value {
         let mut v = serde_json::to_value(MapConfig::default())
             .expect("the default config serialises to JSON");
@@ -117,6 +129,11 @@ impl MapConfig {
                 "sunlight".into(),
                 serde_json::to_value(SunlightConfig::default())
                     .expect("the sunlight config serialises to JSON"),
+            );
+            o.insert(
+                "virtual".into(),
+                serde_json::to_value(VirtualViewsConfig::default())
+                    .expect("the virtual views config serialises to JSON"),
             );
         }
         v
@@ -659,6 +676,7 @@ mod tests {
         // The printed default shows the sunlight section and reads back as the default.
         let shown = MapConfig::documented_default();
         assert!(shown.get("sunlight").is_some());
+        assert!(shown.get("virtual").is_some());
         assert_eq!(serde_json::from_value::<MapConfig>(shown).unwrap(), d);
     }
 
@@ -678,5 +696,43 @@ mod tests {
         // The other sections keep the map's defaults (not their types').
         assert_eq!(c.encoder, MapConfig::default().encoder);
         assert!(serde_json::to_value(&c).unwrap().get("sunlight").is_some());
+    }
+
+    #[test]
+    fn virtual_views_are_off_stored_only_when_set_and_validated_by_name() {
+        let d = MapConfig::default();
+        assert!(!d.virtual_views.enabled);
+        assert!(
+            serde_json::to_value(&d).unwrap().get("virtual").is_none(),
+            "maps from before it resume unchanged"
+        );
+        let c: MapConfig = serde_json::from_value(MapConfig::overlay_on_default(
+            json!({"virtual": {"enabled": true, "altitude_band": [0.5, 1.2]}}),
+        ))
+        .unwrap();
+        assert!(c.virtual_views.enabled);
+        assert_eq!(c.virtual_views.altitude_band, [0.5, 1.2]);
+        assert_eq!(
+            c.virtual_views.pitch_deg,
+            VirtualViewsConfig::default().pitch_deg
+        );
+        assert!(c.validate().is_ok());
+        let stored = serde_json::to_value(&c).unwrap();
+        assert_eq!(stored["virtual"]["enabled"], json!(true));
+        assert_eq!(serde_json::from_value::<MapConfig>(stored).unwrap(), c);
+        // Unknown keys are refused; out-of-range values name their field.
+        assert!(
+            serde_json::from_value::<MapConfig>(json!({"virtual": {"per_view": 1}}))
+                .unwrap_err()
+                .to_string()
+                .contains("per_view")
+        );
+        let bad: MapConfig = serde_json::from_value(json!({
+            "virtual": {"pitch_deg": [10.0, 95.0], "min_coverage": 2.0}
+        }))
+        .unwrap();
+        let e = bad.validate().unwrap_err();
+        assert!(e.contains("`virtual.pitch_deg` = [10.0, 95.0]"), "{e}");
+        assert!(e.contains("`virtual.min_coverage` = 2"), "{e}");
     }
 }
