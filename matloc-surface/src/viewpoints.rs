@@ -319,6 +319,53 @@ pub fn survey_height(
     Some(*m)
 }
 
+/// World points of every `stride`-th cell of a view's z-depth map (`0` or non-finite: no
+/// surface); the map may be coarser than the image, with its aspect (as
+/// [`crate::FrameSurfaces::depth`] gives it): cell centres are scaled to the image's pixels.
+pub fn points_from_depth(
+    camera: &Camera,
+    cam_from_world: &Pose,
+    depth: &matloc_core::Image<f32>,
+    stride: usize,
+) -> Vec<Point3<f64>> {
+    let (w, h) = (depth.width(), depth.height());
+    if w == 0 || h == 0 || depth.channels() != 1 {
+        return Vec::new();
+    }
+    let (sx, sy) = (
+        camera.width as f64 / w as f64,
+        camera.height as f64 / h as f64,
+    );
+    let world_from_cam = cam_from_world.inverse();
+    let data = depth.data();
+    let stride = stride.max(1);
+    let mut out = Vec::new();
+    for r in (0..h).step_by(stride) {
+        for c in (0..w).step_by(stride) {
+            let z = f64::from(data[r * w + c]);
+            if !(z.is_finite() && z > 0.0) {
+                continue;
+            }
+            let px = Point2::new((c as f64 + 0.5) * sx, (r as f64 + 0.5) * sy);
+            if let Some(n) = camera.pixel_to_normalized(px) {
+                out.push(world_from_cam * Point3::new(n.x * z, n.y * z, z));
+            }
+        }
+    }
+    out
+}
+
+/// The world's up axis for a survey without one recorded: minus the mean of the training
+/// views' unit viewing directions (an aerial survey looks down). `None` when the directions
+/// cancel out or there are none.
+pub fn up_from_views(cam_from_world: &[Pose]) -> Option<Vector3<f64>> {
+    let sum: Vector3<f64> = cam_from_world
+        .iter()
+        .map(|p| p.inverse_transform_vector(&Vector3::z()))
+        .sum();
+    (-sum).try_normalize(1e-6 * cam_from_world.len() as f64)
+}
+
 /// `cam_from_world` of a camera at `eye` whose optical axis points along `heading_rad` in the
 /// ground frame, `pitch_rad` below the horizon; image right is horizontal, image top towards
 /// the heading (also at nadir).

@@ -525,3 +525,33 @@ fn on_the_tiny_world_cameras_are_clear_of_the_true_geometry() {
     );
     assert!(near * 10 >= v.poses.len() * 8, "{near}");
 }
+
+#[test]
+fn depth_maps_lift_to_the_surface_and_a_looking_down_survey_gives_up() {
+    let frame = GroundFrame::new(Vector3::z()).unwrap();
+    let eye = Point3::new(5.0, -3.0, 30.0);
+    let pose = heading_pitch_pose(&frame, &eye, 0.3, 90f64.to_radians());
+    // A 16 × 12 map (a quarter of the 64 × 48 image) of flat ground 30 m below, one hole.
+    let mut depth = vec![30.0f32; 16 * 12];
+    depth[5] = 0.0;
+    let depth = matloc_core::Image::from_vec(16, 12, 1, depth).unwrap();
+    let pts = points_from_depth(&camera(), &pose, &depth, 1);
+    assert_eq!(pts.len(), 16 * 12 - 1);
+    for p in &pts {
+        assert!(p.z.abs() < 1e-9, "{p}");
+        // Each point projects back inside the image.
+        let px = camera().project_world(&pose, p).unwrap();
+        assert!(camera().contains(px), "{px}");
+    }
+    assert_eq!(points_from_depth(&camera(), &pose, &depth, 4).len(), 4 * 3);
+    // Nadir and 30° oblique views at four headings: up is +z.
+    let poses: Vec<Pose> = (0..4)
+        .flat_map(|k| {
+            let h = f64::from(k) * std::f64::consts::FRAC_PI_2;
+            [90.0f64, 60.0].map(|p| heading_pitch_pose(&frame, &eye, h, p.to_radians()))
+        })
+        .collect();
+    let up = up_from_views(&poses).unwrap();
+    assert!((up - Vector3::z()).norm() < 1e-9, "{up}");
+    assert!(up_from_views(&[]).is_none());
+}
