@@ -194,9 +194,18 @@ fn split_flags_are_checked_applied_and_recorded_by_map_build() {
                 .contains("\"split\"")
     );
 
-    // The split is recorded before the first stage runs (five blank 6×4 frames are too little
-    // for a map, so the build stops there).
+    // Five blank 6×4 frames are too little for a map: the plan step refuses them, and a
+    // refused build leaves nothing behind.
     let o = build(&["--test-every", "2", "--resplit"]);
+    assert!(!o.status.success());
+    assert!(!map.exists(), "{}", text(&o));
+
+    // On a map that exists (created here as a build interrupted in its first stage leaves it),
+    // the split is recorded before the first stage runs, and kept when the build stops.
+    let config = serde_json::to_value(matloc_pipeline::build::MapConfig::default()).unwrap();
+    matloc_pipeline::MapDir::create_or_resume(&map, config).unwrap();
+    let o = build(&["--test-every", "2", "--resplit"]);
+    assert!(!o.status.success());
     let manifest: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(map.join("manifest.json")).unwrap()).unwrap();
     assert_eq!(
