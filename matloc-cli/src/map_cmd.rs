@@ -8,7 +8,6 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::{MultiProgress, ProgressBar};
-use matloc_pipeline::MapDir;
 use matloc_pipeline::build::{
     BuildEvent, MapConfig, build_map, plan_map, run_block_job, run_finish_job,
 };
@@ -19,6 +18,7 @@ use matloc_pipeline::map::layout::{
     CONFIDENCE_FILE, CalibrationRecord, PLAN_FILE, PLAN_FORMAT, PlanRecord, SelectionRecord,
     block_stages, required_stages, selection_file,
 };
+use matloc_pipeline::{MapDir, VirtualViewsRecord};
 
 use crate::progress;
 use crate::split_args::{self, SplitArgs};
@@ -872,12 +872,45 @@ fn info(root: &Path, json: bool) -> Result<()> {
                 .map_or("the configured bound".to_string(), |d| format!("{d:.1}°"))
         )?;
     }
+    if let Some(v) = m
+        .stages
+        .iter()
+        .find(|s| s.name == "place")
+        .and_then(|s| s.virtual_views.as_ref())
+    {
+        outln!("  virtual      {}", virtual_views_line(v))?;
+    }
     outln!("  stages:")?;
     for s in &m.stages {
         outln!("    {:<14} {:>8.1} s", s.name, s.seconds)?;
     }
     report_problems(&problems);
     fail_on(root, &problems)
+}
+
+/// What `map info` shows of the place stage's virtual viewpoints.
+fn virtual_views_line(v: &VirtualViewsRecord) -> String {
+    let r = &v.rejected;
+    format!(
+        "{} views in the place classifier ({} groups), {} of {} candidates rejected ({} no \
+         ground below, {} clearance, {} axis misses ground, {} target outside block, {} axis \
+         not covered, {} low coverage), {} unlabelled; survey {:.1} m up, cells {:.2} m, \
+         {:.1} s",
+        v.views,
+        v.per_group.iter().filter(|&&n| n > 0).count(),
+        r.total(),
+        v.candidates,
+        r.no_ground_below,
+        r.clearance,
+        r.axis_misses_ground,
+        r.target_outside_block,
+        r.axis_not_covered,
+        r.low_coverage,
+        v.unlabelled,
+        v.survey_height_m,
+        v.cell_m,
+        v.seconds
+    )
 }
 
 /// One line per problem on stderr.
@@ -911,6 +944,31 @@ mod tests {
         );
         std::fs::write(&path, r#"{"nerf": {"steps": 7}}"#).unwrap();
         assert_eq!(super::read_config(&path).unwrap().nerf.steps, 7);
+    }
+
+    #[test]
+    fn map_info_shows_the_virtual_views_with_their_rejections() {
+        let v = matloc_pipeline::VirtualViewsRecord {
+            views: 12,
+            candidates: 15,
+            rejected: matloc_surface::viewpoints::Rejections {
+                axis_misses_ground: 2,
+                target_outside_block: 1,
+                ..Default::default()
+            },
+            unlabelled: 0,
+            per_block: vec![12],
+            per_group: vec![2, 0, 10],
+            survey_height_m: 29.89,
+            cell_m: 2.989,
+            seconds: 1.96,
+        };
+        assert_eq!(
+            super::virtual_views_line(&v),
+            "12 views in the place classifier (2 groups), 3 of 15 candidates rejected (0 no \
+             ground below, 0 clearance, 2 axis misses ground, 1 target outside block, 0 axis \
+             not covered, 0 low coverage), 0 unlabelled; survey 29.9 m up, cells 2.99 m, 2.0 s"
+        );
     }
 
     #[test]

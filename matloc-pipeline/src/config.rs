@@ -44,8 +44,11 @@ pub struct MapConfig {
     #[serde(skip_serializing_if = "SunlightConfig::is_default")]
     pub sunlight: SunlightConfig,
     /// Virtual viewpoints beyond the survey: poses sampled over the ground the training
-    /// cameras saw (`matloc_surface::viewpoints`; off by default, and left out of the stored
-    /// config while it is the default, so maps from before it resume unchanged).
+    /// cameras saw (`matloc_surface::viewpoints`), rendered by the block NeRFs at the size of
+    /// `place.rendered` and added to the place classifier's training views, each labelled with
+    /// the pose group whose views saw most of its footprint (the place stage records their
+    /// counts). Off by default, and left out of the stored config while it is the default, so
+    /// maps from before it resume unchanged.
     #[serde(
         rename = "virtual",
         skip_serializing_if = "VirtualViewsConfig::is_default"

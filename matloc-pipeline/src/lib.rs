@@ -42,4 +42,5 @@ pub use localizer::{
 };
 pub use map::{
     BlockEntry, FileEntry, LoadedMap, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,
+    VirtualViewsRecord,
 };

@@ -37,7 +37,8 @@ use crate::error::SurfaceError;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct VirtualViewsConfig {
-    /// Sample virtual viewpoints at map build. Off by default.
+    /// Sample virtual viewpoints at map build: the place stage renders them with the block
+    /// NeRFs into the place classifier's training views. Off by default.
     pub enabled: bool,
     /// Poses accepted per block (fewer when `max_candidates_per_pose` draws run out).
     pub per_block: usize,
@@ -353,6 +354,25 @@ pub fn points_from_depth(
         }
     }
     out
+}
+
+/// The cells of `grid` where a camera's footprint rays (pixel centres of an 8 × 8 grid of
+/// cells over the image) first meet the observed surface, one entry per ray that meets it, in
+/// ray order (a cell seen by several rays repeats).
+pub fn footprint_cells(grid: &SurfaceGrid, camera: &Camera, cam_from_world: &Pose) -> Vec<usize> {
+    let world_from_cam = cam_from_world.inverse();
+    let eye = Point3::from(world_from_cam.translation.vector);
+    let max_t = grid.reach(&eye);
+    let frame = grid.frame();
+    footprint_bearings(camera)
+        .0
+        .iter()
+        .filter_map(|b| {
+            let p = grid.cast(&eye, &world_from_cam.transform_vector(b), max_t)?;
+            let [u, v, _] = frame.local(&p);
+            grid.cell(u, v)
+        })
+        .collect()
 }
 
 /// The world's up axis for a survey without one recorded: minus the mean of the training

@@ -1,7 +1,8 @@
 //! The same data and config give the same map: two builds of `tiny`, each on one thread, run
 //! side by side in one process, and every file they write is compared — the NeRF, the ground
 //! truth pairs, the query encoder and the place classifier (burn, initialised from the config's
-//! seeds), the selection, the calibration, the partition and the surface.
+//! seeds, trained with views rendered at virtual viewpoints), the selection, the calibration,
+//! the partition and the surface.
 //!
 //! One thread per build, because rayon's parallel reductions associate floating-point sums in
 //! whatever order the work was stolen; on one thread every sum has one order. The builds run
@@ -22,7 +23,7 @@ use matloc_pipeline::MapDir;
 use matloc_pipeline::build::{MapConfig, build_map};
 use matloc_synth::{SynthConfig, synthesize};
 
-/// A short build of every stage: the point is equality, not accuracy.
+/// A short build of every stage, virtual viewpoints on: the point is equality, not accuracy.
 fn config() -> MapConfig {
     let mut c = MapConfig::default();
     c.nerf.steps = 120;
@@ -32,8 +33,13 @@ fn config() -> MapConfig {
     c.encoder.train.head_phase.steps = 40;
     c.place.train.epochs = 3;
     c.calibration.max_views = 4;
+    c.virtual_views.enabled = true;
+    c.virtual_views.per_block = VIRTUAL_PER_BLOCK;
     c
 }
+
+/// Virtual viewpoints asked for per block.
+const VIRTUAL_PER_BLOCK: usize = 12;
 
 /// A safetensors file as (header, tensor bytes).
 fn safetensors_parts(bytes: &[u8]) -> (serde_json::Value, &[u8]) {
@@ -163,4 +169,34 @@ fn two_single_thread_builds_of_tiny_write_the_same_map() {
     );
     assert_eq!(manifest(&maps[0]), manifest(&maps[1]), "manifest.json");
     eprintln!("equal in both builds: {names:?} and the manifest");
+
+    // The place classifier trained on virtual views, counted in the place stage's record.
+    let map = MapDir::open(&maps[0]).unwrap();
+    let place = map
+        .manifest()
+        .stages
+        .iter()
+        .find(|s| s.name == "place")
+        .unwrap();
+    let v = place
+        .virtual_views
+        .as_ref()
+        .expect("virtual views recorded");
+    eprintln!("virtual views: {v:?}");
+    let blocks = map.manifest().blocks.len();
+    assert!(
+        v.views > 0 && v.views <= VIRTUAL_PER_BLOCK * blocks,
+        "{v:?}"
+    );
+    assert_eq!(v.views + v.unlabelled, v.candidates - v.rejected.total());
+    assert_eq!(v.per_block.len(), blocks);
+    assert_eq!(v.per_block.iter().sum::<usize>(), v.views);
+    let groups = matloc_place::PlaceModel::load(&maps[0].join("place"))
+        .unwrap()
+        .groups()
+        .len();
+    // Counted by label: every label is one of the classifier's groups.
+    assert_eq!(v.per_group.len(), groups);
+    assert_eq!(v.per_group.iter().sum::<usize>(), v.views);
+    assert!(v.seconds > 0.0 && v.survey_height_m > 0.0 && v.cell_m > 0.0);
 }

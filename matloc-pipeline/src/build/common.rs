@@ -9,7 +9,7 @@ use matloc_partition::Partition;
 
 use crate::error::PipelineError;
 use crate::gt::TrainingView;
-use crate::map::manifest::MapDir;
+use crate::map::manifest::{MapDir, StageRecord, VirtualViewsRecord};
 
 /// A progress event of [`crate::build::build_map`].
 #[derive(Clone, Debug, PartialEq)]
@@ -133,6 +133,26 @@ pub(crate) fn stage(
     progress: &mut dyn FnMut(&BuildEvent),
     body: &mut StageBody<'_>,
 ) -> Result<(), PipelineError> {
+    stage_recorded(map, name, total, progress, &mut |map, progress| {
+        body(map, progress).map(|()| None)
+    })
+}
+
+/// The work of a stage that records virtual viewpoints beside its time.
+pub(crate) type RecordedStageBody<'a> = dyn FnMut(
+        &mut MapDir,
+        &mut dyn FnMut(&BuildEvent),
+    ) -> Result<Option<VirtualViewsRecord>, PipelineError>
+    + 'a;
+
+/// [`stage`] whose body also returns what the stage's record keeps of its virtual viewpoints.
+pub(crate) fn stage_recorded(
+    map: &mut MapDir,
+    name: &str,
+    total: u64,
+    progress: &mut dyn FnMut(&BuildEvent),
+    body: &mut RecordedStageBody<'_>,
+) -> Result<(), PipelineError> {
     if map.stage_done(name) {
         progress(&BuildEvent::StageFinished {
             name: name.into(),
@@ -146,9 +166,13 @@ pub(crate) fn stage(
         name: name.into(),
         total,
     });
-    body(map, progress)?;
+    let virtual_views = body(map, progress)?;
     let secs = t.elapsed().as_secs_f64();
-    map.complete_stage(name, secs)?;
+    map.complete_stage_record(StageRecord {
+        name: name.to_string(),
+        seconds: secs,
+        virtual_views,
+    })?;
     progress(&BuildEvent::StageFinished {
         name: name.into(),
         seconds: secs,

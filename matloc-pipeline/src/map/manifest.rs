@@ -240,6 +240,32 @@ pub struct StageRecord {
     pub name: String,
     /// Wall-clock seconds the stage took.
     pub seconds: f64,
+    /// The place stage's virtual viewpoints, when the map config's `virtual` is on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub virtual_views: Option<VirtualViewsRecord>,
+}
+
+/// What the place stage made of the virtual viewpoints (`matloc_surface::viewpoints`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VirtualViewsRecord {
+    /// Views rendered and added to the place classifier's training set.
+    pub views: usize,
+    /// Candidate poses drawn over all blocks.
+    pub candidates: usize,
+    /// Candidates dropped, by the first rule each failed.
+    pub rejected: matloc_surface::viewpoints::Rejections,
+    /// Accepted poses left out because no pose group's views saw any of their footprint.
+    pub unlabelled: usize,
+    /// Views per block.
+    pub per_block: Vec<usize>,
+    /// Views labelled with each pose group (indexed by group id).
+    pub per_group: Vec<usize>,
+    /// The survey's median camera height above the ground it saw, metres.
+    pub survey_height_m: f64,
+    /// Edge of the height field's cells, metres.
+    pub cell_m: f64,
+    /// Wall-clock seconds: the training views' surface, sampling, labelling and rendering.
+    pub seconds: f64,
 }
 
 /// The manifest of a map directory.
@@ -856,15 +882,21 @@ impl MapDir {
     /// Records a completed stage and persists the manifest; a build killed after this call
     /// resumes after the stage.
     pub fn complete_stage(&mut self, name: &str, seconds: f64) -> Result<(), MapError> {
+        self.complete_stage_record(StageRecord {
+            name: name.to_string(),
+            seconds,
+            virtual_views: None,
+        })
+    }
+
+    /// [`MapDir::complete_stage`] with the whole record (a stage's counts beside its time).
+    pub fn complete_stage_record(&mut self, record: StageRecord) -> Result<(), MapError> {
         let stages = match &mut self.block {
             Some(r) => &mut r.stages,
             None => &mut self.manifest.stages,
         };
-        stages.retain(|s| s.name != name);
-        stages.push(StageRecord {
-            name: name.to_string(),
-            seconds,
-        });
+        stages.retain(|s| s.name != record.name);
+        stages.push(record);
         self.save()
     }
 

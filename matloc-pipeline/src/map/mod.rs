@@ -10,4 +10,5 @@ pub mod manifest;
 pub use load::{LoadedBlocks, LoadedMap, MapBlock};
 pub use manifest::{
     BlockEntry, BlockRecord, FileEntry, MANIFEST_VERSION, Manifest, MapDir, MapError, StageRecord,
+    VirtualViewsRecord,
 };

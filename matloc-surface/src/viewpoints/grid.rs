@@ -172,6 +172,43 @@ impl SurfaceGrid {
         (x < self.dims[0] && y < self.dims[1]).then_some(y * self.dims[0] + x)
     }
 
+    /// Index of the cell of ground point `(u, v)` (row-major, `u` fastest), `None` outside
+    /// the grid.
+    pub fn cell(&self, u: f64, v: f64) -> Option<usize> {
+        self.index(u, v)
+    }
+
+    /// The cells holding at least one of `points` (non-finite points and points outside the
+    /// grid skipped), increasing and without repeats.
+    pub fn cells_of(&self, points: &[Point3<f64>]) -> Vec<usize> {
+        let mut cells: Vec<usize> = points
+            .iter()
+            .filter_map(|p| {
+                let [u, v, _] = self.frame.local(p);
+                self.index(u, v)
+            })
+            .collect();
+        cells.sort_unstable();
+        cells.dedup();
+        cells
+    }
+
+    /// A length that any ray from `origin` crosses the grid's observed surface within: the
+    /// horizontal distance to the grid's farthest corner plus the height above its lowest
+    /// observed cell.
+    pub fn reach(&self, origin: &Point3<f64>) -> f64 {
+        let [u, v, h] = self.frame.local(origin);
+        let (lo, hi) = self.extent();
+        let du = (u - lo[0]).abs().max((u - hi[0]).abs());
+        let dv = (v - lo[1]).abs().max((v - hi[1]).abs());
+        let dh = if self.min_height.is_finite() {
+            (h - self.min_height).abs()
+        } else {
+            0.0
+        };
+        du.hypot(dv) + dh + self.cell_m
+    }
+
     /// Highest surface height observed in the cell of ground point `(u, v)`.
     pub fn height(&self, u: f64, v: f64) -> Option<f64> {
         self.index(u, v)

@@ -555,3 +555,45 @@ fn depth_maps_lift_to_the_surface_and_a_looking_down_survey_gives_up() {
     assert!((up - Vector3::z()).norm() < 1e-9, "{up}");
     assert!(up_from_views(&[]).is_none());
 }
+
+#[test]
+fn a_nadir_footprint_lands_on_the_cells_under_the_camera() {
+    let (_, seen) = survey();
+    let frame = GroundFrame::new(Vector3::z()).unwrap();
+    let grid = SurfaceGrid::build(frame, 2.0, &seen).unwrap();
+    let cam = camera();
+    // 20 m above flat ground at (20, 20), nadir: a 60° field of view spans ±11.5 m in x.
+    let pose = heading_pitch_pose(
+        &frame,
+        &Point3::new(20.0, 20.0, 20.0),
+        0.0,
+        90_f64.to_radians(),
+    );
+    let cells = footprint_cells(&grid, &cam, &pose);
+    assert_eq!(cells.len(), 64, "every ray meets the ground");
+    // The grid starts at the lowest point, (0.5, 0.5); 50 cells a row.
+    let (o, _) = grid.extent();
+    for &c in &cells {
+        let u = o[0] + (c % 50) as f64 * 2.0 + 1.0;
+        let v = o[1] + (c / 50) as f64 * 2.0 + 1.0;
+        assert!(
+            (u - 20.0).abs() <= 13.0 && (v - 20.0).abs() <= 13.0,
+            "cell at ({u}, {v})"
+        );
+    }
+    // The cells a camera saw: sorted, unique, and the footprint's own cells among the camera's
+    // under the same spot.
+    // Camera (i, j) = (1, 1) of the survey stands over (20, 20).
+    let under = grid.cells_of(&seen[10]);
+    assert!(under.windows(2).all(|w| w[0] < w[1]));
+    assert!(cells.iter().all(|c| under.binary_search(c).is_ok()));
+    // Looking at the sky: the axis leaves the grid and no ray meets anything.
+    let up = heading_pitch_pose(
+        &frame,
+        &Point3::new(20.0, 20.0, 20.0),
+        0.0,
+        -60_f64.to_radians(),
+    );
+    assert!(footprint_cells(&grid, &cam, &up).is_empty());
+    assert!(grid.reach(&Point3::new(20.0, 20.0, 20.0)) >= 80_f64.hypot(80.0) + 20.0);
+}
