@@ -731,16 +731,7 @@ impl PlacePredictor for FixedStart {
 
 /// The true pose moved by 1.5 m and turned by 2°, in a direction fixed per view index.
 fn start_of(truth: &Pose, i: usize) -> Pose {
-    let a = i as f64 * 2.399_963; // golden angle: directions spread over the views
-    let t = nalgebra::Vector3::new(a.cos(), a.sin(), 0.3 * (2.0 * a).sin()).normalize() * 1.5;
-    let axis = nalgebra::Unit::new_normalize(nalgebra::Vector3::new(a.sin(), 0.5, a.cos()));
-    let r = nalgebra::UnitQuaternion::from_axis_angle(&axis, 2f64.to_radians());
-    let wfc = truth.inverse();
-    let moved = Pose::from_parts(
-        nalgebra::Translation3::from(wfc.translation.vector + t),
-        wfc.rotation * r,
-    );
-    moved.inverse()
+    offset_start(truth, i, 1.5, 2.0)
 }
 
 /// Fixed starts per test view in the surface comparison.
