@@ -35,10 +35,11 @@ pub struct DemoArgs {
 }
 
 /// The demo's map configuration: sized so synthesis + build + evaluation of `small` fit in
-/// about 20 minutes on 2 cores.
+/// about 16 minutes on 2 cores.
 pub fn demo_config() -> MapConfig {
     let mut c = MapConfig::default();
-    // 600 steps per block: the two blocks of `small` take ~9 of the 20 minutes.
+    // 600 steps per block: the two blocks' NeRFs, trained side by side, take ~4 of the 16
+    // minutes.
     c.nerf.steps = 600;
     c.nerf.checkpoint_every = 200;
     c.place.train.epochs = 30;
