@@ -209,6 +209,17 @@ pub struct Distortion {
 }
 
 impl Distortion {
+    /// The coefficients with their OpenCV names, in OpenCV's order.
+    pub fn named(&self) -> [(&'static str, f64); 5] {
+        [
+            ("k1", self.k1),
+            ("k2", self.k2),
+            ("p1", self.p1),
+            ("p2", self.p2),
+            ("k3", self.k3),
+        ]
+    }
+
     /// No distortion (a pinhole camera).
     pub const NONE: Distortion = Distortion {
         k1: 0.0,
@@ -348,18 +359,13 @@ impl Camera {
                 height: self.height,
             });
         }
-        let d = &self.distortion;
-        for (field, value) in [
+        let intrinsics = [
             ("fx", self.fx),
             ("fy", self.fy),
             ("cx", self.cx),
             ("cy", self.cy),
-            ("k1", d.k1),
-            ("k2", d.k2),
-            ("p1", d.p1),
-            ("p2", d.p2),
-            ("k3", d.k3),
-        ] {
+        ];
+        for (field, value) in intrinsics.into_iter().chain(self.distortion.named()) {
             if !value.is_finite() {
                 return Err(CameraError::NonFinite { field, value });
             }
@@ -427,13 +433,7 @@ impl Camera {
             return problems;
         }
         let mut coefficients_ok = true;
-        for (field, value) in [
-            ("k1", d.k1),
-            ("k2", d.k2),
-            ("p1", d.p1),
-            ("p2", d.p2),
-            ("k3", d.k3),
-        ] {
+        for (field, value) in d.named() {
             if !value.is_finite() {
                 problems.push(ImplausibleCamera::NonFiniteDistortion { field, value });
                 coefficients_ok = false;

@@ -847,14 +847,7 @@ fn put_camera(obj: &mut Map<String, Value>, cam: &Camera) {
     obj.insert("cx".into(), Value::from(cam.cx));
     obj.insert("cy".into(), Value::from(cam.cy));
     if !cam.is_pinhole() {
-        let d = &cam.distortion;
-        for (k, v) in [
-            ("k1", d.k1),
-            ("k2", d.k2),
-            ("k3", d.k3),
-            ("p1", d.p1),
-            ("p2", d.p2),
-        ] {
+        for (k, v) in cam.distortion.named() {
             obj.insert(k.into(), Value::from(v));
         }
     }
