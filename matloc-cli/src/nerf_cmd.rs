@@ -95,17 +95,6 @@ pub fn run(args: &NerfArgs, quiet: bool) -> Result<()> {
     }
 }
 
-fn merge(base: &mut serde_json::Value, over: &serde_json::Value) {
-    match (base, over) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
-            for (k, v) in o {
-                merge(b.entry(k.clone()).or_insert(serde_json::Value::Null), v);
-            }
-        }
-        (b, o) => *b = o.clone(),
-    }
-}
-
 fn train(
     data: &Path,
     out: &Path,
@@ -122,9 +111,16 @@ fn train(
         let over: serde_json::Value =
             serde_json::from_slice(&text).with_context(|| format!("parsing {}", path.display()))?;
         let mut base = serde_json::to_value(&config)?;
-        merge(&mut base, &over);
+        matloc_pipeline::config::overlay_json(&mut base, over.clone());
         config = serde_json::from_value::<ModelConfig>(base)
             .with_context(|| format!("config overrides in {}", path.display()))?;
+        let read = serde_json::to_value(&config)?;
+        if let Some(key) = matloc_pipeline::config::unknown_overlay_keys(&over, &read).first() {
+            bail!(
+                "config overrides in {}: unknown field `{key}` (not a field of the NeRF model config)",
+                path.display()
+            );
+        }
     }
     if has_checkpoint(out) {
         let step = NerfModel::load(out)

@@ -151,13 +151,16 @@ impl MapConfig {
     /// the default's object whole. Deserialise the result (`serde_json::from_value`).
     pub fn overlay_on_default(partial: serde_json::Value) -> serde_json::Value {
         let mut full = MapConfig::documented_default();
-        overlay(&mut full, partial);
+        overlay_json(&mut full, partial);
         full
     }
 }
 
-/// Writes `over` onto `base` (see [`MapConfig::overlay_on_default`]).
-fn overlay(base: &mut serde_json::Value, over: serde_json::Value) {
+/// Writes `over` onto `base`: each key `over` gives replaces `base`'s, objects key by key;
+/// an object that names a key `base` lacks (another enum variant, or a typo that
+/// deserialising then reports) or another `kind` replaces `base`'s object whole. The one
+/// overlay of every partial JSON config (map configs, NeRF model overrides).
+pub fn overlay_json(base: &mut serde_json::Value, over: serde_json::Value) {
     use serde_json::Value;
     match (base, over) {
         (Value::Object(b), Value::Object(o))
@@ -165,11 +168,32 @@ fn overlay(base: &mut serde_json::Value, over: serde_json::Value) {
                 && o.get("kind").is_none_or(|k| b.get("kind") == Some(k)) =>
         {
             for (k, v) in o {
-                overlay(b.get_mut(&k).expect("key checked above"), v);
+                overlay_json(b.get_mut(&k).expect("key checked above"), v);
             }
         }
         (b, o) => *b = o,
     }
+}
+
+/// The dotted paths of the keys of `over` that `result` (the overlaid value after a round trip
+/// through its type) does not have: fields the type does not know, which a type without
+/// `deny_unknown_fields` would otherwise drop without a word.
+pub fn unknown_overlay_keys(over: &serde_json::Value, result: &serde_json::Value) -> Vec<String> {
+    use serde_json::Value;
+    let mut out = Vec::new();
+    if let (Value::Object(o), Value::Object(r)) = (over, result) {
+        for (k, v) in o {
+            match r.get(k) {
+                None => out.push(k.clone()),
+                Some(rv) => out.extend(
+                    unknown_overlay_keys(v, rv)
+                        .into_iter()
+                        .map(|p| format!("{k}.{p}")),
+                ),
+            }
+        }
+    }
+    out
 }
 
 /// The resolution a map is built at.

@@ -15,19 +15,6 @@ use crate::error::PipelineError;
 use crate::map::layout::block_dir;
 use crate::map::manifest::MapDir;
 
-/// Deep-merges `patch` into `base` (objects merge key by key; anything else replaces).
-fn merge_json(base: &mut serde_json::Value, patch: &serde_json::Value) {
-    match (base, patch) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
-            for (k, v) in p {
-                merge_json(b.entry(k.clone()).or_insert(serde_json::Value::Null), v);
-            }
-        }
-        (_, serde_json::Value::Null) => {}
-        (b, p) => *b = p.clone(),
-    }
-}
-
 /// The sub-NeRF config of a block dataset: derived from the data, then the overrides.
 pub fn block_model_config(
     dataset: &Dataset,
@@ -40,8 +27,17 @@ pub fn block_model_config(
     let field = "nerf.model_overrides";
     let mut v = serde_json::to_value(&base)
         .map_err(|source| PipelineError::ConfigJson { field, source })?;
-    merge_json(&mut v, &nerf.model_overrides);
-    serde_json::from_value(v).map_err(|source| PipelineError::ConfigJson { field, source })
+    crate::config::overlay_json(&mut v, nerf.model_overrides.clone());
+    let config: matloc_render::ModelConfig =
+        serde_json::from_value(v).map_err(|source| PipelineError::ConfigJson { field, source })?;
+    let read = serde_json::to_value(&config)
+        .map_err(|source| PipelineError::ConfigJson { field, source })?;
+    match crate::config::unknown_overlay_keys(&nerf.model_overrides, &read).first() {
+        Some(key) => Err(PipelineError::Config(format!(
+            "{field}: unknown field `{key}` (not a field of the NeRF model config)"
+        ))),
+        None => Ok(config),
+    }
 }
 
 /// Trains the sub-NeRF of each of `blocks` the map does not record as done (on the lifted
@@ -241,4 +237,45 @@ fn finish_block(map: &mut MapDir, b: usize, dir: &Path) -> Result<(), PipelineEr
     }
     // The trainer wrote its files atomically; list them (checksums) in the manifest.
     register_dir(map, &block_dir(b))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matloc_render::Background;
+    use serde_json::json;
+
+    /// An override naming another variant of an enum replaces the derived value whole (two
+    /// variants merged key by key would be a map no enum reads), and a plain field keeps the
+    /// rest of its section.
+    #[test]
+    fn an_override_of_another_enum_variant_replaces_the_derived_one() {
+        let dataset = Dataset {
+            root: "d".into(),
+            frames: Vec::new(),
+            points: None,
+            metadata: matloc_data::dataset::SceneMetadata {
+                bounds_min: Some([-10.0, -10.0, -2.0]),
+                bounds_max: Some([10.0, 10.0, 5.0]),
+                ..Default::default()
+            },
+        };
+        let nerf = NerfStageConfig {
+            model_overrides: json!({"train": {
+                "background": {"Random": [0.5, 0.5, 0.5]},
+                "batch_rays": 1024
+            }}),
+            ..NerfStageConfig::default()
+        };
+        let c = block_model_config(&dataset, &nerf).unwrap();
+        assert_eq!(c.train.background, Background::Random([0.5; 3]));
+        assert_eq!(c.train.batch_rays, 1024);
+        let base = block_model_config(&dataset, &NerfStageConfig::default()).unwrap();
+        assert_eq!(c.train.schedule, base.train.schedule);
+        let typo = NerfStageConfig {
+            model_overrides: json!({"train": {"batch_rayz": 1}}),
+            ..NerfStageConfig::default()
+        };
+        assert!(block_model_config(&dataset, &typo).is_err());
+    }
 }
