@@ -15,7 +15,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::baselines::{InerfOptions, KeypointBaselineOptions, inerf, rgb_keypoints};
+use crate::baselines::{
+    InerfOptions, KeypointBaselineOptions, inerf, render_colour, rgb_keypoints,
+};
 use crate::error::PipelineError;
 use crate::localizer::HypothesisReport;
 use crate::localizer::options::query_at_working_size;
@@ -327,7 +329,16 @@ fn localize_structure(
         .map(|h| h.cam_from_world)
         .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(map.config.localize.seed);
-    let r = matloc_structure::localize(structure, image, camera, &starts, options, &mut rng)?;
+    let references = NerfReferences { map };
+    let r = matloc_structure::localize_with_references(
+        structure,
+        image,
+        camera,
+        &starts,
+        options,
+        Some(&references),
+        &mut rng,
+    )?;
     let hypotheses = hyps
         .iter()
         .enumerate()
@@ -359,7 +370,13 @@ fn localize_structure(
                     report.failure = if last.images == 0 {
                         Some("no training image looks the way this hypothesis does".into())
                     } else if tried.iter().any(|s| s.unseen) {
-                        Some("no training image looks the way the solved pose does".into())
+                        Some(if options.rendered.enabled {
+                            "no training image looks the way the solved pose does, and the \
+                             view the map renders there disagrees with the query"
+                                .into()
+                        } else {
+                            "no training image looks the way the solved pose does".into()
+                        })
                     } else if tried.iter().any(|s| s.unconfirmed) {
                         Some(
                             "the consensus covers a small part of the image and the map points \
@@ -403,6 +420,48 @@ fn localize_structure(
         stage_seconds,
         total_seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// The map's block NeRFs as the structure method's renderer of views no training image
+/// shares: the served block whose scene box holds the point the view looks at (the nearest
+/// box when none does) draws it in colour with its depth.
+struct NerfReferences<'a> {
+    map: &'a LoadedMap,
+}
+
+impl matloc_structure::ReferenceRenderer for NerfReferences<'_> {
+    fn render_reference(
+        &self,
+        camera: &Camera,
+        cam_from_world: &Pose,
+        looking_at: &nalgebra::Point3<f64>,
+    ) -> Option<matloc_structure::RenderedReference> {
+        let p = [looking_at.x, looking_at.y, looking_at.z];
+        let outside = |b: &matloc_partition::Block| -> f64 {
+            (0..3)
+                .map(|a| {
+                    (b.bounds.min[a] - p[a])
+                        .max(p[a] - b.bounds.max[a])
+                        .max(0.0)
+                })
+                .map(|d| d * d)
+                .sum()
+        };
+        let block = self
+            .map
+            .partition
+            .blocks
+            .iter()
+            .filter(|b| self.map.serves(b.id) && self.map.nerf(b.id).is_some())
+            .min_by(|a, b| outside(a).total_cmp(&outside(b)))?;
+        let model = self.map.nerf(block.id)?;
+        let (view, image) = render_colour(model, camera, cam_from_world).ok()?;
+        Some(matloc_structure::RenderedReference {
+            image,
+            z_depth: view.z_depth,
+            accumulation: view.accumulation,
+        })
+    }
 }
 
 /// The structure method's confidence: 1 − NFA, where the number of false alarms bounds the

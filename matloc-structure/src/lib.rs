@@ -17,9 +17,14 @@
 pub mod align;
 pub mod error;
 pub mod localize;
+pub mod rendered;
 pub mod store;
 
 pub use align::AlignOptions;
 pub use error::StructureError;
-pub use localize::{StartReport, StructureOptions, StructureResult, localize};
+pub use localize::{
+    StartReport, StructureOptions, StructureResult, localize, localize_with_references,
+    render_agreement,
+};
+pub use rendered::{ReferenceRenderer, RenderedOptions, RenderedReference};
 pub use store::{ImageAppearance, STRUCTURE_FORMAT, StructureImage, StructureMap};

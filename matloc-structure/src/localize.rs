@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::align::{AlignOptions, QueryPlanes, align, local_affine, template, zncc_at};
 use crate::error::StructureError;
+use crate::rendered::{ReferenceRenderer, RenderedOptions};
 use crate::store::StructureMap;
 
 /// Settings of the structure localizer.
@@ -77,6 +78,9 @@ pub struct StructureOptions {
     /// `confirmed_hull` to be accepted (tiny's mirrored views: at most 0.53; real views at
     /// least 0.58). A map without its training images' gray values cannot confirm one.
     pub min_agreement: f64,
+    /// References rendered by the map's radiance field where no training image looks the
+    /// query's way ([`localize_with_references`]; without a renderer, unused).
+    pub rendered: RenderedOptions,
 }
 
 /// Normalised cross-correlation at which a map point's training patch agrees with the query.
@@ -104,6 +108,7 @@ impl Default for StructureOptions {
             min_inlier_hull: 0.15,
             confirmed_hull: 0.3,
             min_agreement: 0.5,
+            rendered: RenderedOptions::default(),
         }
     }
 }
@@ -139,6 +144,10 @@ pub struct StartReport {
     /// points in view agreeing with the query, so it was not accepted.
     #[serde(default)]
     pub unconfirmed: bool,
+    /// The pose was confirmed by (or solved from) a view rendered at it, no training image
+    /// looking its way.
+    #[serde(default)]
+    pub rendered: bool,
 }
 
 /// The outcome of a structure localization.
@@ -192,6 +201,28 @@ pub fn localize(
     options: &StructureOptions,
     rng: &mut dyn RngCore,
 ) -> Result<StructureResult, StructureError> {
+    localize_with_references(map, image, camera, starts, options, None, rng)
+}
+
+/// [`localize`] with a renderer of the map's scene for viewpoints no training image shares:
+/// a consensus that passes every test but whose pose no training image looks towards is
+/// accepted only when a view rendered at the pose agrees with the query
+/// (`options.rendered.min_agreement`, [`render_agreement`]). With
+/// `options.rendered.max_renders`, when every start is refused, the refused poses with the
+/// most inliers are rendered, solved from the render, rendered again at that solution and
+/// solved once more; the second solve is accepted when it has `options.rendered.min_inliers`
+/// inliers, an NFA within `max_log10_nfa` (counted over every attempt), inliers over
+/// `confirmed_hull` of the image, and agrees with the first.
+pub fn localize_with_references(
+    map: &StructureMap,
+    image: &Image<f32>,
+    camera: &Camera,
+    starts: &[Pose],
+    options: &StructureOptions,
+    renderer: Option<&dyn ReferenceRenderer>,
+    rng: &mut dyn RngCore,
+) -> Result<StructureResult, StructureError> {
+    let renderer = renderer.filter(|_| options.rendered.enabled);
     let (w, h, c) = image.shape();
     if w != camera.width as usize || h != camera.height as usize || c != 3 {
         return Err(StructureError::QueryShape {
@@ -202,7 +233,8 @@ pub fn localize(
     let t = Instant::now();
     // Sharpened before detection: a photo from another flight or camera is softer than the
     // map's training images.
-    let gray = GrayImage::from_image(image).unsharp(options.query_sharpen, 1.0);
+    let plain = GrayImage::from_image(image);
+    let gray = plain.clone().unsharp(options.query_sharpen, 1.0);
     let (keypoints, descriptors) = detect_and_describe(&gray, &options.keypoints);
     let mut seconds = vec![("keypoints".to_string(), t.elapsed().as_secs_f64())];
     let mut time = Timer::default();
@@ -217,6 +249,8 @@ pub fn localize(
     let mut aligned_inliers = 0;
     let mut attempts: Vec<Attempt> = starts.iter().map(Attempt::Start).collect();
     let mut retrieved = false;
+    // Refused poses worth a render: (inliers, pose, a point the consensus saw).
+    let mut refused: Vec<(usize, Pose, Point3<f64>)> = Vec::new();
     let mut i = 0;
     while i < attempts.len() {
         let mut first = match &mut attempts[i] {
@@ -234,12 +268,29 @@ pub fn localize(
         };
         // A pose the survey never looked at is a consensus with the wrong part of the scene:
         // on `building` one such pose had 16 inliers at NFA 10^-14, 54 m and 83° off.
+        // A viewpoint beyond the survey: only a view rendered there can confirm it.
         if first.report.accepted
             && let Some(pose) = first.pose
             && nearest_images(map, &pose, options).is_empty()
         {
-            first.report.accepted = false;
-            first.report.unseen = true;
+            let confirmed = renderer.is_some_and(|r| {
+                let t = Instant::now();
+                let reference =
+                    inlier_centroid(&first).and_then(|at| r.render_reference(camera, &pose, &at));
+                time.render += t.elapsed().as_secs_f64();
+                let t = Instant::now();
+                let agreement = reference.and_then(|reference| {
+                    render_agreement(&plain, &reference, options.rendered.min_accumulation)
+                });
+                time.matching += t.elapsed().as_secs_f64();
+                agreement.is_some_and(|a| a >= options.rendered.min_agreement)
+            });
+            if confirmed {
+                first.report.rendered = true;
+            } else {
+                first.report.accepted = false;
+                first.report.unseen = true;
+            }
         }
         // A consensus on one small part of the image that the rest of it does not confirm: a
         // mirrored image matched on the mirror-symmetric parts of the scene.
@@ -250,6 +301,12 @@ pub fn localize(
         reports.push(first.report.clone());
         i += 1;
         if !first.report.accepted {
+            if let Some(pose) = first.pose
+                && first.report.inliers >= options.rendered.min_start_inliers
+                && let Some(at) = inlier_centroid(&first)
+            {
+                refused.push((first.report.inliers, pose, at));
+            }
             if best
                 .as_ref()
                 .is_none_or(|b| first.report.inliers > b.report.inliers)
@@ -301,10 +358,19 @@ pub fn localize(
         best = Some(chosen);
         break;
     }
+    if let Some(r) = renderer
+        && !best.as_ref().is_some_and(|b| b.report.accepted)
+        && let Some(s) = from_renders(r, &query, refused, i, options, rng, &mut time, &mut reports)
+    {
+        best = Some(s);
+    }
     seconds.push(("match".to_string(), time.matching));
     seconds.push(("pnp".to_string(), time.pnp));
     if options.align.enabled {
         seconds.push(("align".to_string(), time.align));
+    }
+    if renderer.is_some() {
+        seconds.push(("render".to_string(), time.render));
     }
     let accepted = best.as_ref().is_some_and(|b| b.report.accepted);
     Ok(StructureResult {
@@ -337,6 +403,7 @@ struct Timer {
     matching: f64,
     pnp: f64,
     align: f64,
+    render: f64,
 }
 
 /// The training images nearest `start` (camera centre) among those looking within the
@@ -497,6 +564,7 @@ fn solve_matches(
         accepted: false,
         unseen: false,
         unconfirmed: false,
+        rendered: false,
     };
     let solver = LoRansacPnp::new(options.pnp.clone());
     let solved = solver.solve(
@@ -524,6 +592,269 @@ fn solve_matches(
         inliers,
         images: Vec::new(),
     }
+}
+
+/// Mean of the 3D points of `solve`'s inliers (`None` without inliers).
+fn inlier_centroid(solve: &Solve) -> Option<Point3<f64>> {
+    let (mut sum, mut n) = (Vector3::zeros(), 0usize);
+    for (k, x) in solve.matches.points.iter().enumerate() {
+        if solve.inliers.get(k).copied().unwrap_or(false) {
+            sum += x.coords;
+            n += 1;
+        }
+    }
+    (n > 0).then(|| Point3::from(sum / n as f64))
+}
+
+/// Whether poses `a` and `b` lie within `options.agree_m` and `options.agree_deg`.
+fn agrees(a: &Pose, b: &Pose, options: &RenderedOptions) -> bool {
+    let dt = (camera_center(a) - camera_center(b)).norm();
+    let dr = (a.rotation * b.rotation.inverse()).angle().to_degrees();
+    dt <= options.agree_m && dr <= options.agree_deg
+}
+
+/// Whether a pose solved from a render passes: enough inliers, a significant consensus, and
+/// inliers spread over `options.confirmed_hull` of the image.
+fn rendered_accepted(solve: &Solve, camera: &Camera, options: &StructureOptions) -> bool {
+    let significant = solve.report.inliers >= options.rendered.min_inliers
+        && solve
+            .report
+            .log10_nfa
+            .is_some_and(|nfa| nfa <= options.max_log10_nfa);
+    let inliers = (0..solve.matches.pixels.len())
+        .filter(|&k| solve.inliers.get(k).copied().unwrap_or(false))
+        .map(|k| solve.matches.pixels[k]);
+    significant
+        && solve.pose.is_some()
+        && hull_fraction(inliers, camera.width, camera.height) >= options.confirmed_hull
+}
+
+/// Share of the textured patches of a view rendered at a pose that agree with the query
+/// there: each `2·half + 1` square of the render (both images blurred by `sigma` px), on a
+/// grid of `step` px, where the render is opaque and varies, correlated with the query at
+/// the same place or up to `shift` px from it, agreeing at [`AGREEING_ZNCC`] or more. `None`
+/// when fewer than `MIN_COMPARED` patches could be compared.
+pub fn render_agreement(
+    query: &GrayImage,
+    reference: &crate::rendered::RenderedReference,
+    min_accumulation: f32,
+) -> Option<f64> {
+    const STEP: usize = 12;
+    const HALF: usize = 6;
+    const SHIFT: isize = 2;
+    const SIGMA: f32 = 1.0;
+    const MIN_STD: f32 = 0.02;
+    const MIN_COMPARED: usize = 10;
+    let render = GrayImage::from_image(&reference.image).gaussian_blur(SIGMA);
+    let (w, h) = (render.width(), render.height());
+    if query.width() != w || query.height() != h || reference.accumulation.len() != w * h {
+        return None;
+    }
+    let q = query.gaussian_blur(SIGMA);
+    let side = 2 * HALF + 1;
+    let n = (side * side) as f32;
+    let margin = HALF + SHIFT as usize;
+    let mut centres = Vec::new();
+    let mut y = margin;
+    while y + margin < h {
+        let mut x = margin;
+        while x + margin < w {
+            centres.push((x, y));
+            x += STEP;
+        }
+        y += STEP;
+    }
+    let patch = |img: &GrayImage, cx: usize, cy: usize| -> Option<Vec<f32>> {
+        let mut v = Vec::with_capacity(side * side);
+        for yy in cy - HALF..=cy + HALF {
+            for xx in cx - HALF..=cx + HALF {
+                v.push(img.at(xx, yy));
+            }
+        }
+        let mean = v.iter().sum::<f32>() / n;
+        v.iter_mut().for_each(|a| *a -= mean);
+        let norm = v.iter().map(|a| a * a).sum::<f32>().sqrt();
+        (norm / n.sqrt() >= MIN_STD).then(|| {
+            v.iter_mut().for_each(|a| *a /= norm);
+            v
+        })
+    };
+    let compared: Vec<bool> = centres
+        .par_iter()
+        .filter_map(|&(cx, cy)| {
+            if reference.accumulation[cy * w + cx] < min_accumulation {
+                return None;
+            }
+            let r = patch(&render, cx, cy)?;
+            let mut best = f32::NEG_INFINITY;
+            for dy in -SHIFT..=SHIFT {
+                for dx in -SHIFT..=SHIFT {
+                    let (qx, qy) = ((cx as isize + dx) as usize, (cy as isize + dy) as usize);
+                    if let Some(qp) = patch(&q, qx, qy) {
+                        best = best.max(r.iter().zip(&qp).map(|(a, b)| a * b).sum());
+                    } else {
+                        best = best.max(0.0);
+                    }
+                }
+            }
+            Some(f64::from(best) >= AGREEING_ZNCC)
+        })
+        .collect();
+    (compared.len() >= MIN_COMPARED)
+        .then(|| compared.iter().filter(|&&a| a).count() as f64 / compared.len() as f64)
+}
+
+/// Side of the window whose rendered depths must agree for a render keypoint to be lifted:
+/// a keypoint on an occluding edge mixes two surfaces.
+const DEPTH_WINDOW: usize = 1;
+
+/// Largest relative spread of the rendered depths around a lifted keypoint.
+const MAX_DEPTH_SPREAD: f32 = 0.05;
+
+/// Solves the query's pose from a view rendered at `pose` (start `index` for the false-alarm
+/// count): the render's keypoints matched to the query's, lifted by the rendered depth where
+/// it is opaque and smooth. `None` when nothing could be rendered.
+#[allow(clippy::too_many_arguments)]
+fn solve_rendered(
+    renderer: &dyn ReferenceRenderer,
+    query: &Query<'_>,
+    pose: &Pose,
+    looking_at: &Point3<f64>,
+    index: usize,
+    options: &StructureOptions,
+    rng: &mut dyn RngCore,
+    time: &mut Timer,
+) -> Option<Solve> {
+    let camera = query.camera;
+    let t = Instant::now();
+    let reference = renderer.render_reference(camera, pose, looking_at);
+    time.render += t.elapsed().as_secs_f64();
+    let reference = reference?;
+    let (w, h, _) = reference.image.shape();
+    if w != camera.width as usize
+        || h != camera.height as usize
+        || reference.z_depth.len() != w * h
+        || reference.accumulation.len() != w * h
+    {
+        return None;
+    }
+    let t = Instant::now();
+    let gray = GrayImage::from_image(&reference.image).unsharp(options.query_sharpen, 1.0);
+    let (kr, dr) = detect_and_describe(&gray, &options.keypoints);
+    let found = match_descriptors(query.descriptors, &dr, &options.matching);
+    let world_from_cam = pose.inverse();
+    let mut matches = Matches::default();
+    for m in &found {
+        let k = kr[m.b];
+        let (c, r) = (k.x.floor() as usize, k.y.floor() as usize);
+        if c >= w || r >= h || reference.accumulation[r * w + c] < options.rendered.min_accumulation
+        {
+            continue;
+        }
+        let Some(z) = smooth_depth(&reference.z_depth, w, h, c, r) else {
+            continue;
+        };
+        let Some(bearing) = camera.unproject(Point2::new(f64::from(k.x), f64::from(k.y))) else {
+            continue;
+        };
+        let p_cam = bearing * (f64::from(z) / bearing.z);
+        let q = &query.keypoints[m.a];
+        matches
+            .pixels
+            .push(Point2::new(f64::from(q.x), f64::from(q.y)));
+        matches.points.push(world_from_cam * Point3::from(p_cam));
+        matches.scores.push(1.0 - f64::from(m.distance) / 256.0);
+        matches.source.push((u32::MAX, m.b as u32));
+        matches.point.push(u32::MAX);
+    }
+    time.matching += t.elapsed().as_secs_f64();
+    let mut solve = solve_matches(matches, index, options, camera, rng, time);
+    solve.report.accepted = false;
+    solve.report.rendered = true;
+    Some(solve)
+}
+
+/// The depth at `(c, r)` when every depth in its window is positive and within
+/// [`MAX_DEPTH_SPREAD`] of it.
+fn smooth_depth(depth: &[f32], w: usize, h: usize, c: usize, r: usize) -> Option<f32> {
+    let z = depth[r * w + c];
+    if !(z > 0.0 && z.is_finite()) {
+        return None;
+    }
+    let (c0, c1) = (
+        c.saturating_sub(DEPTH_WINDOW),
+        (c + DEPTH_WINDOW).min(w - 1),
+    );
+    let (r0, r1) = (
+        r.saturating_sub(DEPTH_WINDOW),
+        (r + DEPTH_WINDOW).min(h - 1),
+    );
+    for rr in r0..=r1 {
+        for cc in c0..=c1 {
+            let d = depth[rr * w + cc];
+            if d.is_nan() || d <= 0.0 || (d - z).abs() > MAX_DEPTH_SPREAD * z {
+                return None;
+            }
+        }
+    }
+    Some(z)
+}
+
+/// When every start is refused: the refused poses with the most inliers (distinct by more
+/// than `agree_m`), at most `max_renders`, each rendered and solved from the render, then
+/// rendered again at that solution and solved once more; the first second solve that
+/// passes [`rendered_accepted`] and agrees with the first is the answer. Attempts are
+/// counted from `index` for the false alarms; every solve is reported.
+#[allow(clippy::too_many_arguments)]
+fn from_renders(
+    renderer: &dyn ReferenceRenderer,
+    query: &Query<'_>,
+    mut refused: Vec<(usize, Pose, Point3<f64>)>,
+    mut index: usize,
+    options: &StructureOptions,
+    rng: &mut dyn RngCore,
+    time: &mut Timer,
+    reports: &mut Vec<StartReport>,
+) -> Option<Solve> {
+    let o = &options.rendered;
+    refused.sort_by_key(|r| std::cmp::Reverse(r.0));
+    let mut chosen: Vec<&(usize, Pose, Point3<f64>)> = Vec::new();
+    for r in &refused {
+        if chosen.len() >= o.max_renders {
+            break;
+        }
+        if chosen
+            .iter()
+            .all(|c| (camera_center(&c.1) - camera_center(&r.1)).norm() > o.agree_m)
+        {
+            chosen.push(r);
+        }
+    }
+    for (_, pose, at) in chosen {
+        let Some(first) = solve_rendered(renderer, query, pose, at, index, options, rng, time)
+        else {
+            continue;
+        };
+        index += 1;
+        reports.push(first.report.clone());
+        let (Some(p1), true) = (first.pose, first.report.inliers >= o.min_start_inliers) else {
+            continue;
+        };
+        let at = inlier_centroid(&first).unwrap_or(*at);
+        let Some(mut second) = solve_rendered(renderer, query, &p1, &at, index, options, rng, time)
+        else {
+            continue;
+        };
+        index += 1;
+        let accepted = second.pose.is_some_and(|p2| agrees(&p2, &p1, o))
+            && rendered_accepted(&second, query.camera, options);
+        second.report.accepted = accepted;
+        reports.push(second.report.clone());
+        if accepted {
+            return Some(second);
+        }
+    }
+    None
 }
 
 /// Whether `solve`'s consensus holds for the whole query: its inliers cover at least

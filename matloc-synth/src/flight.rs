@@ -308,6 +308,39 @@ fn path_name(p: &Path) -> String {
     PathBuf::from(p).to_string_lossy().replace('\\', "/")
 }
 
+/// A viewpoint the survey never flew, made from the view at `cam_from_world`: turned by
+/// `yaw_deg` about the vertical through the terrain point it looks at (the terrain height
+/// under the camera), brought `closer` of the way to that point, then pitched `tilt_deg`
+/// about its own x axis (positive: towards the horizon). `None` when the view does not look
+/// down.
+pub fn turned_view(
+    world: &World,
+    cam_from_world: &matloc_core::Pose,
+    yaw_deg: f64,
+    closer: f64,
+    tilt_deg: f64,
+) -> Option<matloc_core::Pose> {
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+    let world_from_cam = cam_from_world.inverse();
+    let c = world_from_cam.translation.vector;
+    let dir = world_from_cam.rotation * Vector3::z();
+    if dir.z >= -1e-3 {
+        return None;
+    }
+    let ground = world.height_at(c.x, c.y);
+    let look = c + dir * ((ground - c.z) / dir.z);
+    let turn = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw_deg.to_radians());
+    let moved = look + (turn * (c - look)) * (1.0 - closer);
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), tilt_deg.to_radians());
+    Some(
+        matloc_core::Pose::from_parts(
+            Translation3::from(moved),
+            turn * world_from_cam.rotation * tilt,
+        )
+        .inverse(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -756,3 +756,29 @@ fn perf_throughput() {
         views.len() as f64 / s
     );
 }
+
+/// A turned view keeps looking at the terrain point the survey view looked at (without tilt),
+/// from `closer` of the way nearer, at the turned heading; tilt lifts it towards the horizon.
+#[test]
+fn a_turned_view_looks_at_the_same_ground_point_from_nearer() {
+    let (world, plan, _) = tiny();
+    let pose = plan.frames[0].cam_from_world;
+    let c = camera_center(&pose);
+    let dir = viewing_direction(&pose);
+    let ground = world.height_at(c.x, c.y);
+    let look = c + dir * ((ground - c.z) / dir.z);
+    let t = crate::flight::turned_view(&world, &pose, 90.0, 0.25, 0.0).unwrap();
+    let (c2, d2) = (camera_center(&t), viewing_direction(&t));
+    assert!(((look - c2).norm() - 0.75 * (look - c).norm()).abs() < 1e-9);
+    assert!((look - c2).normalize().dot(&d2) > 1.0 - 1e-9);
+    // A quarter turn about the vertical: the horizontal heading turns by 90°.
+    let (h1, h2) = (
+        Vector3::new(dir.x, dir.y, 0.0).normalize(),
+        Vector3::new(d2.x, d2.y, 0.0).normalize(),
+    );
+    assert!(h1.dot(&h2).abs() < 1e-9 && h1.cross(&h2).z > 0.0);
+    let tilted = crate::flight::turned_view(&world, &pose, 0.0, 0.0, 20.0).unwrap();
+    let d3 = viewing_direction(&tilted);
+    assert!(d3.z > dir.z, "tilted {d3:?} vs {dir:?}");
+    assert!((d3.angle(&dir).to_degrees() - 20.0).abs() < 1e-6);
+}

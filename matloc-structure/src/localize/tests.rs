@@ -445,3 +445,141 @@ proptest! {
         let _ = StructureMap::from_bytes(&b, std::path::Path::new("x"));
     }
 }
+
+/// The ground drawn at any pose with its exact depth: a stand-in for the map's radiance field.
+struct GroundRenderer {
+    texture: fn(f64, f64) -> f32,
+}
+
+impl ReferenceRenderer for GroundRenderer {
+    fn render_reference(
+        &self,
+        camera: &Camera,
+        cam_from_world: &Pose,
+        _looking_at: &Point3<f64>,
+    ) -> Option<crate::rendered::RenderedReference> {
+        let image = render(camera, cam_from_world, self.texture);
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let mut z_depth = vec![0f32; w * h];
+        for r in 0..h {
+            for c in 0..w {
+                let px = Point2::new(c as f64 + 0.5, r as f64 + 0.5);
+                if let Some(p) = on_ground(camera, cam_from_world, px) {
+                    z_depth[r * w + c] = (cam_from_world * p).z as f32;
+                }
+            }
+        }
+        Some(crate::rendered::RenderedReference {
+            image,
+            z_depth,
+            accumulation: vec![1.0; w * h],
+        })
+    }
+}
+
+/// Another ground: the same cells, other grey values.
+fn other_ground(x: f64, y: f64) -> f32 {
+    1.0 - ground(x + 0.65, y - 0.65)
+}
+
+/// The pose of [`a_pose_no_training_image_looks_at_is_not_accepted`] that no training image
+/// confirms at 20° is accepted when a view rendered there agrees with the query, and stays
+/// refused when the render shows another scene.
+#[test]
+fn a_render_at_an_unseen_pose_confirms_it_and_a_wrong_render_does_not() {
+    let map = plane_structure();
+    let camera = camera();
+    let nadir = pose_above(3.0, -2.0, 0.1);
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 25f64.to_radians());
+    let gt = Pose::from_parts(Translation3::identity(), tilt) * nadir;
+    let query = render(&camera, &gt, ground);
+    let options = StructureOptions {
+        max_view_angle_deg: 20.0,
+        ..StructureOptions::default()
+    };
+    let run = |texture: fn(f64, f64) -> f32| {
+        let renderer = GroundRenderer { texture };
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        localize_with_references(
+            &map,
+            &query,
+            &camera,
+            &[nadir],
+            &options,
+            Some(&renderer),
+            &mut rng,
+        )
+        .unwrap()
+    };
+    let confirmed = run(ground);
+    let pose = confirmed.cam_from_world.expect("confirmed by the render");
+    assert!(
+        translation_error_m(&pose, &gt) < 0.25,
+        "{:?}",
+        confirmed.starts
+    );
+    assert!(rotation_error_deg(&pose, &gt) < 1.0);
+    assert!(confirmed.starts[0].accepted && confirmed.starts[0].rendered);
+    assert!(
+        confirmed
+            .stage_seconds
+            .iter()
+            .any(|(s, t)| s == "render" && *t > 0.0)
+    );
+    let wrong = run(other_ground);
+    assert!(wrong.cam_from_world.is_none(), "{:?}", wrong.starts);
+    assert!(wrong.starts[0].unseen);
+}
+
+/// When every start is refused (here: no start can reach the inliers asked of the training
+/// images), the best refused pose is rendered, solved from the render, rendered again and
+/// solved once more; that pose is accepted. Without a renderer the query is refused.
+#[test]
+fn when_every_start_is_refused_the_renders_solve_the_pose() {
+    let map = plane_structure();
+    let camera = camera();
+    let gt = pose_above(4.0, 3.0, 0.3);
+    let query = render(&camera, &gt, ground);
+    let mut options = StructureOptions {
+        min_inliers: 100_000,
+        ..StructureOptions::default()
+    };
+    options.rendered.max_renders = 2;
+    let start = pose_above(0.0, 0.0, 0.0);
+    let renderer = GroundRenderer { texture: ground };
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let r = localize_with_references(
+        &map,
+        &query,
+        &camera,
+        &[start],
+        &options,
+        Some(&renderer),
+        &mut rng,
+    )
+    .unwrap();
+    let pose = r.cam_from_world.expect("solved from the renders");
+    assert!(translation_error_m(&pose, &gt) < 0.25, "{:?}", r.starts);
+    assert!(rotation_error_deg(&pose, &gt) < 1.0);
+    let last = r.starts.last().unwrap();
+    assert!(last.accepted && last.rendered, "{:?}", r.starts);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let without = localize(&map, &query, &camera, &[start], &options, &mut rng).unwrap();
+    assert!(without.cam_from_world.is_none());
+}
+
+/// A keypoint's rendered depth is used only where its window is one smooth surface.
+#[test]
+fn a_depth_on_an_occluding_edge_is_not_lifted() {
+    let (w, h) = (4, 3);
+    let flat = vec![10.0f32; w * h];
+    assert_eq!(smooth_depth(&flat, w, h, 1, 1), Some(10.0));
+    assert_eq!(smooth_depth(&flat, w, h, 0, 0), Some(10.0));
+    let mut edge = flat.clone();
+    edge[2] = 20.0;
+    assert_eq!(smooth_depth(&edge, w, h, 1, 1), None);
+    assert_eq!(smooth_depth(&edge, w, h, 0, 2), Some(10.0));
+    let mut hole = flat;
+    hole[5] = 0.0;
+    assert_eq!(smooth_depth(&hole, w, h, 1, 1), None);
+}
