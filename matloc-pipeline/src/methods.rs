@@ -425,8 +425,15 @@ fn localize_structure(
 /// The map's block NeRFs as the structure method's renderer of views no training image
 /// shares: the served block whose scene box holds the point the view looks at (the nearest
 /// box when none does) draws it in colour with its depth.
-struct NerfReferences<'a> {
+pub struct NerfReferences<'a> {
     map: &'a LoadedMap,
+}
+
+impl<'a> NerfReferences<'a> {
+    /// The renderer over `map`'s block NeRFs.
+    pub fn new(map: &'a LoadedMap) -> Self {
+        NerfReferences { map }
+    }
 }
 
 impl matloc_structure::ReferenceRenderer for NerfReferences<'_> {

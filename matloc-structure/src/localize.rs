@@ -280,7 +280,7 @@ pub fn localize_with_references(
                 time.render += t.elapsed().as_secs_f64();
                 let t = Instant::now();
                 let agreement = reference.and_then(|reference| {
-                    render_agreement(&plain, &reference, options.rendered.min_accumulation)
+                    render_agreement(&plain, &reference, &options.rendered)
                 });
                 time.matching += t.elapsed().as_secs_f64();
                 agreement.is_some_and(|a| a >= options.rendered.min_agreement)
@@ -630,27 +630,27 @@ fn rendered_accepted(solve: &Solve, camera: &Camera, options: &StructureOptions)
 }
 
 /// Share of the textured patches of a view rendered at a pose that agree with the query
-/// there: each `2·half + 1` square of the render (both images blurred by `sigma` px), on a
-/// grid of `step` px, where the render is opaque and varies, correlated with the query at
-/// the same place or up to `shift` px from it, agreeing at [`AGREEING_ZNCC`] or more. `None`
+/// there: each 13 px square of the render (both images blurred by `options.blur_px`), on a
+/// grid of 12 px, where the render is opaque and varies, correlated with the query at
+/// the same place or up to 2 px from it, agreeing at [`AGREEING_ZNCC`] or more. `None`
 /// when fewer than `MIN_COMPARED` patches could be compared.
 pub fn render_agreement(
     query: &GrayImage,
     reference: &crate::rendered::RenderedReference,
-    min_accumulation: f32,
+    options: &RenderedOptions,
 ) -> Option<f64> {
     const STEP: usize = 12;
     const HALF: usize = 6;
     const SHIFT: isize = 2;
-    const SIGMA: f32 = 1.0;
+    let (min_accumulation, sigma) = (options.min_accumulation, options.blur_px);
     const MIN_STD: f32 = 0.02;
     const MIN_COMPARED: usize = 10;
-    let render = GrayImage::from_image(&reference.image).gaussian_blur(SIGMA);
+    let render = GrayImage::from_image(&reference.image).gaussian_blur(sigma);
     let (w, h) = (render.width(), render.height());
     if query.width() != w || query.height() != h || reference.accumulation.len() != w * h {
         return None;
     }
-    let q = query.gaussian_blur(SIGMA);
+    let q = query.gaussian_blur(sigma);
     let side = 2 * HALF + 1;
     let n = (side * side) as f32;
     let margin = HALF + SHIFT as usize;

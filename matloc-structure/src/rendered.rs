@@ -52,6 +52,9 @@ pub struct RenderedOptions {
     /// images blurred by 1 px). Read as the structure localizer's `min_agreement` is: half of
     /// what the map shows there must be seen in the query.
     pub min_agreement: f64,
+    /// Gaussian blur of the render and the query before they are compared, pixels (a
+    /// radiance field renders softer than a photograph).
+    pub blur_px: f32,
     /// Render pixels whose accumulated opacity is below this are neither compared nor lifted
     /// to 3D.
     pub min_accumulation: f32,
@@ -76,6 +79,7 @@ impl Default for RenderedOptions {
         RenderedOptions {
             enabled: true,
             min_agreement: 0.5,
+            blur_px: 2.0,
             min_accumulation: 0.3,
             max_renders: 0,
             min_start_inliers: 8,
