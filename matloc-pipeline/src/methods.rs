@@ -365,8 +365,7 @@ fn localize_structure(
                     report.inliers = last.inliers;
                     report.confidence =
                         structure_confidence(last.log10_nfa, last.inliers, options.min_inliers);
-                    report.accepted =
-                        r.cam_from_world.is_some() && tried.iter().any(|s| s.accepted);
+                    report.accepted = r.cam_from_world.is_some() && r.chosen_start == Some(i);
                     report.failure = if last.images == 0 {
                         Some("no training image looks the way this hypothesis does".into())
                     } else if tried.iter().any(|s| s.unseen) {

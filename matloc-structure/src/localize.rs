@@ -54,6 +54,13 @@ pub struct StructureOptions {
     /// every place hypothesis on a survey pose that looks elsewhere, and matching against the
     /// images nearest those finds too few points.
     pub retrieval: usize,
+    /// An accepted consensus with fewer inliers than this is weak: the next
+    /// `weak_more_starts` starts are tried as well and the consensus with the most inliers
+    /// is kept. A repeated part of the scene (a street block like the next) ranked first by
+    /// the place predictor gives such a consensus.
+    pub weak_inliers: usize,
+    /// See `weak_inliers`.
+    pub weak_more_starts: usize,
     /// Solve again from the images nearest the first estimate.
     pub second_pass: bool,
     /// Unsharp-mask amount of the query's gray image before detection (σ = 1 px; 0 = off):
@@ -83,6 +90,9 @@ pub struct StructureOptions {
     pub rendered: RenderedOptions,
 }
 
+/// Camera centres closer than this are the same place to the weak-consensus search, metres.
+const WEAK_SAME_PLACE_M: f64 = 5.0;
+
 /// Normalised cross-correlation at which a map point's training patch agrees with the query.
 pub const AGREEING_ZNCC: f64 = 0.5;
 
@@ -102,6 +112,8 @@ impl Default for StructureOptions {
             max_log10_nfa: -2.0,
             place_hypotheses: 30,
             retrieval: 0,
+            weak_inliers: 45,
+            weak_more_starts: 30,
             second_pass: true,
             query_sharpen: 1.0,
             align: AlignOptions::default(),
@@ -163,6 +175,9 @@ pub struct StructureResult {
     pub log10_nfa: Option<f64>,
     /// Per start tried, in order (a second pass appears as its own report).
     pub starts: Vec<StartReport>,
+    /// The start whose pose was returned (`None` when refused, or when the pose was solved
+    /// from renders after every start was refused).
+    pub chosen_start: Option<usize>,
     /// Inliers of the last solve on the aligned correspondences, whose pose is returned (0
     /// when nothing was aligned: then the pose is the descriptor matches' own).
     pub aligned_inliers: usize,
@@ -251,8 +266,12 @@ pub fn localize_with_references(
     let mut retrieved = false;
     // Refused poses worth a render: (inliers, pose, a point the consensus saw).
     let mut refused: Vec<(usize, Pose, Point3<f64>)> = Vec::new();
+    // The accepted consensus with the most inliers so far, with its attempt's index; after a
+    // weak one, the attempts up to `look_until` are tried as well.
+    let mut accepted: Option<(usize, Solve)> = None;
+    let mut look_until: Option<usize> = None;
     let mut i = 0;
-    while i < attempts.len() {
+    while i < attempts.len() && look_until.is_none_or(|end| i < end) {
         let mut first = match &mut attempts[i] {
             Attempt::Start(start) => solve_from(map, &query, start, i, options, rng, &mut time),
             Attempt::Images(images, per_image) => solve_images(
@@ -279,9 +298,8 @@ pub fn localize_with_references(
                     inlier_centroid(&first).and_then(|at| r.render_reference(camera, &pose, &at));
                 time.render += t.elapsed().as_secs_f64();
                 let t = Instant::now();
-                let agreement = reference.and_then(|reference| {
-                    render_agreement(&plain, &reference, &options.rendered)
-                });
+                let agreement = reference
+                    .and_then(|reference| render_agreement(&plain, &reference, &options.rendered));
                 time.matching += t.elapsed().as_secs_f64();
                 agreement.is_some_and(|a| a >= options.rendered.min_agreement)
             });
@@ -314,7 +332,7 @@ pub fn localize_with_references(
                 best = Some(first);
             }
             // Every start refused: the images that share most with the query, once.
-            if i == attempts.len() && options.retrieval > 0 && !retrieved {
+            if i == attempts.len() && options.retrieval > 0 && !retrieved && accepted.is_none() {
                 retrieved = true;
                 let t = Instant::now();
                 attempts.extend(
@@ -326,8 +344,32 @@ pub fn localize_with_references(
             }
             continue;
         }
-        let index = i - 1;
-        let mut chosen = first;
+        let strong = first.report.inliers >= options.weak_inliers;
+        // Another place with more inliers replaces the weak consensus; the same place found
+        // again from other images does not (its pose is no better for having more inliers).
+        let elsewhere = |a: &Solve| match (a.pose, first.pose) {
+            (Some(p), Some(q)) => {
+                (camera_center(&p) - camera_center(&q)).norm() > WEAK_SAME_PLACE_M
+            }
+            _ => true,
+        };
+        if accepted
+            .as_ref()
+            .is_none_or(|(_, a)| first.report.inliers > a.report.inliers && elsewhere(a))
+        {
+            accepted = Some((i - 1, first));
+        }
+        // A weak consensus may be a repeated part of the scene the place predictor ranked
+        // first: the next starts may hold the right one, with more inliers.
+        if strong {
+            break;
+        }
+        if look_until.is_none() {
+            look_until = Some(i + options.weak_more_starts);
+        }
+    }
+    let chosen_start = accepted.as_ref().map(|(index, _)| *index);
+    if let Some((index, mut chosen)) = accepted {
         if options.second_pass
             && let Some(pose) = chosen.pose
         {
@@ -356,7 +398,6 @@ pub fn localize_with_references(
             }
         }
         best = Some(chosen);
-        break;
     }
     if let Some(r) = renderer
         && !best.as_ref().is_some_and(|b| b.report.accepted)
@@ -379,6 +420,7 @@ pub fn localize_with_references(
         matches: best.as_ref().map_or(0, |b| b.report.matches),
         log10_nfa: best.as_ref().and_then(|b| b.report.log10_nfa),
         starts: reports,
+        chosen_start: chosen_start.filter(|_| accepted),
         aligned_inliers,
         stage_seconds: seconds,
     })

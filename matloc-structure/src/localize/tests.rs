@@ -69,6 +69,11 @@ fn render(camera: &Camera, pose: &Pose, texture: impl Fn(f64, f64) -> f32) -> Im
 
 /// A structure of training views on a 3 × 3 grid, 12 m apart, keypoints lifted exactly.
 fn plane_structure() -> StructureMap {
+    plane_structure_of(ground)
+}
+
+/// [`plane_structure`] over another ground texture.
+fn plane_structure_of(texture: fn(f64, f64) -> f32) -> StructureMap {
     let camera = camera();
     let config = StructureOptions::default().keypoints;
     let (mut points, mut images) = (Vec::new(), Vec::new());
@@ -76,7 +81,7 @@ fn plane_structure() -> StructureMap {
     for gy in -1..=1 {
         for gx in -1..=1 {
             let pose = pose_above(12.0 * gx as f64, 12.0 * gy as f64, 0.05 * frame as f64);
-            let image = render(&camera, &pose, ground);
+            let image = render(&camera, &pose, texture);
             let gray = GrayImage::from_image(&image);
             let (kps, descs) = detect_and_describe(&gray, &config);
             let mut im = StructureImage {
@@ -582,4 +587,53 @@ fn a_depth_on_an_occluding_edge_is_not_lifted() {
     let mut hole = flat;
     hole[5] = 0.0;
     assert_eq!(smooth_depth(&hole, w, h, 1, 1), None);
+}
+
+/// Ground that repeats every 24 m along x: a street block like the next.
+fn repeating_ground(x: f64, y: f64) -> f32 {
+    ground(x.rem_euclid(24.0), y)
+}
+
+/// A weak consensus (below `weak_inliers`) is not the end: the next starts are tried, and a
+/// consensus elsewhere with more inliers replaces it; the same place found again from other
+/// images does not.
+#[test]
+fn a_weak_consensus_gives_way_to_a_stronger_one_elsewhere() {
+    let map = plane_structure_of(repeating_ground);
+    let camera = camera();
+    let gt = pose_above(6.0, 1.0, 0.05);
+    let query = render(&camera, &gt, repeating_ground);
+    let run = |starts: &[Pose], weak_inliers: usize| {
+        let starts = starts.to_vec();
+        let options = StructureOptions {
+            weak_inliers,
+            ..StructureOptions::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        localize(&map, &query, &camera, &starts, &options, &mut rng).unwrap()
+    };
+    // From the start over the query's twin 24 m away, the first consensus is the twin (the
+    // second pass then finds the true place). With 15 inliers enough, that start is the
+    // last one tried.
+    let twin = pose_above(-18.0, 1.0, 0.05);
+    let strong = run(&[twin, pose_above(6.0, 0.0, 0.0)], 15);
+    assert_eq!(strong.chosen_start, Some(0));
+    assert!(
+        strong.starts.iter().all(|s| s.start == 0),
+        "{:?}",
+        strong.starts
+    );
+    // Every consensus weak: the true place from the second start has more inliers than the
+    // twin and replaces it.
+    let both = run(&[twin, pose_above(6.0, 0.0, 0.0)], 10_000);
+    let pose = both.cam_from_world.expect("localized");
+    assert!(translation_error_m(&pose, &gt) < 0.25, "{:?}", both.starts);
+    assert_eq!(both.chosen_start, Some(1), "{:?}", both.starts);
+    // Two starts at the true place: the first consensus stays.
+    let same = run(
+        &[pose_above(6.0, 0.0, 0.0), pose_above(5.0, 2.0, 0.0)],
+        10_000,
+    );
+    assert_eq!(same.chosen_start, Some(0), "{:?}", same.starts);
+    assert!(same.starts.iter().any(|s| s.start == 1));
 }
