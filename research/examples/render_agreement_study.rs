@@ -18,9 +18,7 @@ use matloc_pipeline::LoadedMap;
 use matloc_pipeline::methods::NerfReferences;
 use matloc_structure::{ReferenceRenderer, RenderedOptions, render_agreement};
 use matloc_synth::SynthConfig;
-use matloc_synth::flight::{
-    SecondFlight, render_second_flight, second_flight_frames, turned_view,
-};
+use matloc_synth::flight::{SecondFlight, render_second_flight, second_flight_frames, turned_view};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
 fn main() {
@@ -41,7 +39,11 @@ fn main() {
         let mut frame = f.clone();
         frame.cam_from_world = truth;
         let query = GrayImage::from_image(&render_second_flight(
-            &world, &config, &flight, &frame, 700 + i,
+            &world,
+            &config,
+            &flight,
+            &frame,
+            700 + i,
         ));
         let world_from_cam = truth.inverse();
         let c = camera_center(&truth);
@@ -92,7 +94,10 @@ fn main() {
     for (k, (right, wrong)) in seen.iter_mut().enumerate() {
         right.sort_by(f64::total_cmp);
         wrong.sort_by(f64::total_cmp);
-        let q = |v: &[f64], p: f64| v.get(((v.len() as f64 - 1.0) * p).round() as usize).copied();
+        let q = |v: &[f64], p: f64| {
+            v.get(((v.len() as f64 - 1.0) * p).round() as usize)
+                .copied()
+        };
         println!(
             "blur {} px: right min {:?} q10 {:?} median {:?}; wrong median {:?} q90 {:?} max {:?}; \
              right ≥ 0.5: {}/{}, wrong ≥ 0.5: {}/{}",
