@@ -273,17 +273,23 @@ fn the_false_alarms_of_a_later_start_count_the_starts_before_it() {
     );
 }
 
+/// A nadir start above `(3, −2)` and the query taken there tilted 25° off the nadir:
+/// (start, true pose, query image).
+fn tilted_query(camera: &Camera) -> (Pose, Pose, Image<f32>) {
+    let nadir = pose_above(3.0, -2.0, 0.1);
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 25f64.to_radians());
+    let gt = Pose::from_parts(Translation3::identity(), tilt) * nadir;
+    let query = render(camera, &gt, ground);
+    (nadir, gt, query)
+}
+
 /// A pose no training image looks at (within the view angle) is not accepted, however many
 /// inliers it has: the query tilted 25° off the nadir training views localizes with the
 /// default 37°, and is refused, marked unseen, when the angle is 20°.
 #[test]
 fn a_pose_no_training_image_looks_at_is_not_accepted() {
-    let map = plane_structure();
-    let camera = camera();
-    let nadir = pose_above(3.0, -2.0, 0.1);
-    let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 25f64.to_radians());
-    let gt = Pose::from_parts(Translation3::identity(), tilt) * nadir;
-    let query = render(&camera, &gt, ground);
+    let (map, camera) = (plane_structure(), camera());
+    let (nadir, gt, query) = tilted_query(&camera);
     let run = |max_view_angle_deg: f64| {
         let options = StructureOptions {
             max_view_angle_deg,
@@ -492,12 +498,8 @@ fn other_ground(x: f64, y: f64) -> f32 {
 /// refused when the render shows another scene.
 #[test]
 fn a_render_at_an_unseen_pose_confirms_it_and_a_wrong_render_does_not() {
-    let map = plane_structure();
-    let camera = camera();
-    let nadir = pose_above(3.0, -2.0, 0.1);
-    let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 25f64.to_radians());
-    let gt = Pose::from_parts(Translation3::identity(), tilt) * nadir;
-    let query = render(&camera, &gt, ground);
+    let (map, camera) = (plane_structure(), camera());
+    let (nadir, gt, query) = tilted_query(&camera);
     let options = StructureOptions {
         max_view_angle_deg: 20.0,
         ..StructureOptions::default()
@@ -604,13 +606,12 @@ fn a_weak_consensus_gives_way_to_a_stronger_one_elsewhere() {
     let gt = pose_above(6.0, 1.0, 0.05);
     let query = render(&camera, &gt, repeating_ground);
     let run = |starts: &[Pose], weak_inliers: usize| {
-        let starts = starts.to_vec();
         let options = StructureOptions {
             weak_inliers,
             ..StructureOptions::default()
         };
         let mut rng = ChaCha8Rng::seed_from_u64(11);
-        localize(&map, &query, &camera, &starts, &options, &mut rng).unwrap()
+        localize(&map, &query, &camera, starts, &options, &mut rng).unwrap()
     };
     // From the start over the query's twin 24 m away, the first consensus is the twin (the
     // second pass then finds the true place). With 15 inliers enough, that start is the
