@@ -13,7 +13,7 @@ use matloc_pipeline::build::{
 };
 use matloc_pipeline::config::CalibrationQueries;
 use matloc_pipeline::map::MapError;
-use matloc_pipeline::map::check::content_problems;
+use matloc_pipeline::map::check::{content_problems, structure_summary};
 use matloc_pipeline::map::layout::{
     CONFIDENCE_FILE, CalibrationRecord, PLAN_FILE, PLAN_FORMAT, PlanRecord, SelectionRecord,
     block_stages, required_stages, selection_file,
@@ -760,6 +760,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
         .map(|b| map.read_json(&selection_file(b)).ok())
         .collect();
     let calibration: Option<CalibrationRecord> = map.read_json(CONFIDENCE_FILE).ok();
+    let structure = structure_summary(&map);
     let calibration_summary = calibration.as_ref().map(|c| {
         serde_json::json!({
             "model": c.model,
@@ -779,6 +780,7 @@ fn info(root: &Path, json: bool) -> Result<()> {
             "blocks": m.blocks,
             "selections": selections,
             "calibration": calibration_summary,
+            "structure": structure,
             "stages": m.stages,
             "missing_stages": missing,
             "files": m.files.len(),
@@ -854,6 +856,18 @@ fn info(root: &Path, json: bool) -> Result<()> {
             ext[2],
             bytes as f64 / 1e6,
             e.selected_dims
+        )?;
+    }
+    if let Some(s) = &structure {
+        outln!(
+            "  structure    {} points, {} observations in {} images{}",
+            s.points,
+            s.observations,
+            s.images,
+            s.reprojection.as_ref().map_or(String::new(), |r| format!(
+                ", reprojection error median {:.2} px, 95 % {:.2} px, max {:.2} px",
+                r.median_px, r.p95_px, r.max_px
+            ))
         )?;
     }
     if let Some(c) = &calibration {

@@ -27,4 +27,6 @@ pub use localize::{
     render_agreement,
 };
 pub use rendered::{ReferenceRenderer, RenderedOptions, RenderedReference};
-pub use store::{ImageAppearance, STRUCTURE_FORMAT, StructureImage, StructureMap};
+pub use store::{
+    ImageAppearance, ReprojectionStats, STRUCTURE_FORMAT, StructureImage, StructureMap,
+};

@@ -60,6 +60,21 @@ impl StructureImage {
     }
 }
 
+/// How far the structure's points project from the keypoints that observe them, pixels.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct ReprojectionStats {
+    /// Observations measured.
+    pub observations: usize,
+    /// Mean error.
+    pub mean_px: f64,
+    /// Median error.
+    pub median_px: f64,
+    /// 95th percentile.
+    pub p95_px: f64,
+    /// Largest error.
+    pub max_px: f64,
+}
+
 /// Triangulated points and the training images' observations of them.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct StructureMap {
@@ -202,6 +217,39 @@ impl StructureMap {
             .enumerate()
             .filter(move |(_, im)| im.viewing_direction().dot(&dir) >= cos_max)
             .map(|(i, _)| i)
+    }
+
+    /// Reprojection errors of the points in the images that observe them, at each image's
+    /// detection size (the camera it keeps for patch alignment): how well the triangulated
+    /// points fit the training poses. `None` when no image keeps its camera (maps from before
+    /// the gray values were stored) or none of its observations projects.
+    pub fn reprojection_errors(&self) -> Option<ReprojectionStats> {
+        let mut errors: Vec<f64> = self
+            .images
+            .iter()
+            .filter_map(|im| Some((im, im.appearance.as_ref()?.camera)))
+            .flat_map(|(im, camera)| {
+                im.point.iter().zip(&im.pixel).filter_map(move |(&p, px)| {
+                    let x = self.points.get(p as usize)?;
+                    let u = camera.project_world(&im.cam_from_world, x)?;
+                    let e = ((u.x - f64::from(px[0])).powi(2) + (u.y - f64::from(px[1])).powi(2))
+                        .sqrt();
+                    e.is_finite().then_some(e)
+                })
+            })
+            .collect();
+        if errors.is_empty() {
+            return None;
+        }
+        errors.sort_by(f64::total_cmp);
+        let at = |q: f64| errors[((errors.len() - 1) as f64 * q).round() as usize];
+        Some(ReprojectionStats {
+            observations: errors.len(),
+            mean_px: errors.iter().sum::<f64>() / errors.len() as f64,
+            median_px: at(0.5),
+            p95_px: at(0.95),
+            max_px: at(1.0),
+        })
     }
 
     /// Observations over all images.
@@ -680,5 +728,52 @@ pub(crate) mod tests {
         m.points[1].x = f64::NAN;
         let err = StructureMap::from_bytes(&m.to_bytes().unwrap(), path).unwrap_err();
         assert!(err.to_string().contains("`points`"), "{err}");
+    }
+}
+
+#[cfg(test)]
+mod reprojection_tests {
+    use super::*;
+    use nalgebra::Point2;
+
+    /// Points seen exactly where they project have no error; a keypoint moved 3 px shows as
+    /// the largest error; a map without cameras has none to report.
+    #[test]
+    fn reprojection_errors_measure_the_points_against_their_keypoints() {
+        let camera = Camera::pinhole(100, 80, 90.0, 90.0, 50.0, 40.0).unwrap();
+        let pose = Pose::from_parts(
+            Translation3::new(0.2, -0.1, 0.0),
+            UnitQuaternion::from_euler_angles(0.05, 0.0, 0.1),
+        );
+        let points: Vec<Point3<f64>> = (0..5)
+            .map(|k| Point3::new(k as f64 * 0.3 - 0.6, 0.1 * k as f64, 6.0 + k as f64))
+            .collect();
+        let pixel = |x: &Point3<f64>| -> Point2<f64> { camera.project_world(&pose, x).unwrap() };
+        let mut px: Vec<[f32; 2]> = points
+            .iter()
+            .map(|x| {
+                let u = pixel(x);
+                [u.x as f32, u.y as f32]
+            })
+            .collect();
+        px[2][0] += 3.0;
+        let image = |appearance: bool, pixels: Vec<[f32; 2]>| StructureImage {
+            frame: 0,
+            cam_from_world: pose,
+            point: (0..5).collect(),
+            descriptor: vec![[0; 4]; 5],
+            pixel: pixels,
+            appearance: appearance.then(|| ImageAppearance {
+                camera,
+                gray: vec![0; 100 * 80],
+            }),
+        };
+        let m = StructureMap::new(points.clone(), vec![image(true, px.clone())]).unwrap();
+        let r = m.reprojection_errors().unwrap();
+        assert_eq!(r.observations, 5);
+        assert!(r.median_px < 1e-3, "{r:?}");
+        assert!((r.max_px - 3.0).abs() < 1e-3, "{r:?}");
+        let none = StructureMap::new(points, vec![image(false, px)]).unwrap();
+        assert_eq!(none.reprojection_errors(), None);
     }
 }

@@ -67,6 +67,20 @@ fn a_path_traced_survey_without_depth_builds_and_localizes() {
         serde_json::from_slice(&std::fs::read(map_dir.join("surface.json")).unwrap()).unwrap();
     assert_eq!(surface["plan"]["kind"], "triangulated", "{surface}");
 
+    // The triangulated points fit the survey's poses to a fraction of a pixel at the median.
+    let dir = matloc_pipeline::MapDir::open(&map_dir).unwrap();
+    let s = matloc_pipeline::map::check::structure_summary(&dir).expect("a structure");
+    let r = s
+        .reprojection
+        .clone()
+        .expect("the images' cameras are kept");
+    eprintln!("structure: {s:?}");
+    assert!(s.points > 0 && r.observations == s.observations, "{s:?}");
+    assert!(
+        r.median_px < 1.0 && r.median_px <= r.p95_px && r.p95_px <= r.max_px,
+        "{r:?}"
+    );
+
     let map = LoadedMap::open(&map_dir).expect("the map loads");
     let options = MethodOptions::default();
     for method in [Method::Structure, Method::Matloc, Method::RgbKeypoints] {

@@ -216,6 +216,33 @@ fn check_partition(map: &MapDir, p: &Partition) -> Vec<MapError> {
     problems
 }
 
+/// What `map info` shows of the keypoint structure.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct StructureSummary {
+    /// Triangulated points.
+    pub points: usize,
+    /// Keypoints observing them.
+    pub observations: usize,
+    /// Training images with an observation.
+    pub images: usize,
+    /// How far the points project from their keypoints (`None` for maps without the images'
+    /// cameras).
+    pub reprojection: Option<matloc_structure::ReprojectionStats>,
+}
+
+/// The map's structure summarised, when it has one that loads.
+pub fn structure_summary(map: &MapDir) -> Option<StructureSummary> {
+    let bytes = map.read_file(STRUCTURE_FILE).ok()?;
+    let s = matloc_structure::StructureMap::from_bytes(&bytes, &map.root().join(STRUCTURE_FILE))
+        .ok()?;
+    Some(StructureSummary {
+        points: s.points().len(),
+        observations: s.observations(),
+        images: s.images().len(),
+        reprojection: s.reprojection_errors(),
+    })
+}
+
 /// Every problem in the content of the map's files that passed their checksums (see the
 /// module docs); empty for a map that localization loads as it was built. Files that fail
 /// their checksum are left to [`MapDir::problems`].
