@@ -443,36 +443,23 @@ mod tests {
         let cells: Vec<Vec<usize>> = seen.iter().map(|p| grid.cells_of(p)).collect();
         let members: Vec<&[usize]> = vec![&[0, 1], &[2, 3], &[4]];
         let camera = Camera::from_hfov(64, 48, 60.0).unwrap();
+        // The footprint cells of the camera at `at` heading east, `pitch_deg` below the horizon.
+        let footprint = |at: Point3<f64>, pitch_deg: f64| {
+            let pose = heading_pitch_pose(&frame, &at, 0.0, pitch_deg.to_radians());
+            footprint_cells(&grid, &camera, &pose)
+        };
         // A camera 12 m up over x = 35 — between group 0's cameras — looking east 20° below
         // the horizon: most of its footprint rays land beyond x = 55, on ground group 1 saw.
-        let east = heading_pitch_pose(
-            &frame,
-            &Point3::new(35.0, 20.0, 12.0),
-            0.0,
-            20_f64.to_radians(),
-        );
-        let fp = footprint_cells(&grid, &camera, &east);
+        let fp = footprint(Point3::new(35.0, 20.0, 12.0), 20.0);
         assert!(!fp.is_empty());
         assert_eq!(shared_ground_label(&fp, &cells, &members), Some(1));
         // The same camera looking down sees group 0's ground.
-        let down = heading_pitch_pose(
-            &frame,
-            &Point3::new(35.0, 20.0, 12.0),
-            0.0,
-            90_f64.to_radians(),
-        );
-        let down_fp = footprint_cells(&grid, &camera, &down);
+        let down_fp = footprint(Point3::new(35.0, 20.0, 12.0), 90.0);
         assert_eq!(shared_ground_label(&down_fp, &cells, &members), Some(0));
         // Over x = 22 (x ∈ [17.7, 26.3] seen): the single view of group 2 saw all of it; of
         // group 0, x = 30 saw all and x = 40 a sliver. Their union covers it too, so a union
         // rule would tie and hand it to group 0; the mean gives it to group 2.
-        let mid = heading_pitch_pose(
-            &frame,
-            &Point3::new(22.0, 20.0, 10.0),
-            0.0,
-            90_f64.to_radians(),
-        );
-        let fp = footprint_cells(&grid, &camera, &mid);
+        let fp = footprint(Point3::new(22.0, 20.0, 10.0), 90.0);
         assert_eq!(shared_ground_label(&fp, &cells, &members), Some(2));
         // A footprint nobody saw, an empty one, and a tie (the lowest id wins).
         assert_eq!(shared_ground_label(&[usize::MAX], &cells, &members), None);
