@@ -52,7 +52,7 @@ pub fn run(
             let mut poses = Vec::with_capacity(train_idx.len());
             let mut view_points = Vec::with_capacity(train_idx.len());
             // Block NeRFs, loaded when a view without a depth file first needs one.
-            let mut nerfs = Vec::new();
+            let mut nerfs = BlockNerfs::default();
             for (k, &i) in train_idx.iter().enumerate() {
                 let f = &dataset.frames[i];
                 let (image, camera) = load_image(dataset, i)?;
@@ -63,13 +63,7 @@ pub fn run(
                     Ok(Some(d)) => (d, 4),
                     _ => {
                         let b = partition.block_of_member(k).unwrap_or(0);
-                        if nerfs.len() <= b {
-                            nerfs.resize_with(b + 1, || None);
-                        }
-                        if nerfs[b].is_none() {
-                            nerfs[b] = Some(load_nerf(map, b, 0)?);
-                        }
-                        let r = nerfs[b].as_ref().expect("loaded above");
+                        let r = nerfs.get(map, b)?;
                         let v = r
                             .render_view(&camera, &f.cam_from_world, NERF_DEPTH_STRIDE, &[])
                             .map_err(PipelineError::ViewRender)?;
@@ -162,21 +156,12 @@ fn rendered_place_views(
         translation_m: rv.translation_m,
         rotation_deg: rv.rotation_deg,
     };
-    let mut nerfs: Vec<Option<NerfViewRenderer>> = Vec::new();
+    let mut nerfs = BlockNerfs::default();
     let mut rng = ChaCha8Rng::seed_from_u64(rv.seed);
     for (k, &i) in train_idx.iter().enumerate() {
         let f = &dataset.frames[i];
         let small = render_camera(&f.camera, config)?;
-        let b = partition.block_of_member(k).unwrap_or(0);
-        if nerfs.len() <= b {
-            nerfs.resize_with(b + 1, || None);
-        }
-        if nerfs[b].is_none() {
-            nerfs[b] = Some(load_nerf(map, b, 0)?);
-        }
-        let nerf = nerfs[b]
-            .as_ref()
-            .ok_or(PipelineError::Internal("NeRF not loaded"))?;
+        let nerf = nerfs.get(map, partition.block_of_member(k).unwrap_or(0))?;
         for _ in 0..rv.per_view {
             let pose = perturb.apply(&f.cam_from_world, &mut rng);
             let (_, image) = crate::baselines::render_colour(nerf.model(), &small, &pose)?;
@@ -319,30 +304,21 @@ fn virtual_place_views(
         cell_m: sampled.cell_m,
         seconds: 0.0,
     };
-    let mut nerfs: Vec<Option<NerfViewRenderer>> = Vec::new();
+    let mut nerfs = BlockNerfs::default();
     for (n, vp) in sampled.poses.iter().enumerate() {
         let footprint = footprint_cells(&grid, &camera, &vp.cam_from_world);
         let Some(label) = shared_ground_label(&footprint, &seen_cells, &members) else {
             record.unlabelled += 1;
             continue;
         };
-        let b = vp.block;
-        if nerfs.len() <= b {
-            nerfs.resize_with(b + 1, || None);
-        }
-        if nerfs[b].is_none() {
-            nerfs[b] = Some(load_nerf(map, b, 0)?);
-        }
-        let nerf = nerfs[b]
-            .as_ref()
-            .ok_or(PipelineError::Internal("NeRF not loaded"))?;
+        let nerf = nerfs.get(map, vp.block)?;
         let (_, image) =
             crate::baselines::render_colour(nerf.model(), &camera, &vp.cam_from_world)?;
         out.images.push(image);
         out.poses.push(vp.cam_from_world);
         out.labels.push(label);
         record.views += 1;
-        if let Some(c) = record.per_block.get_mut(b) {
+        if let Some(c) = record.per_block.get_mut(vp.block) {
             *c += 1;
         }
         if let Some(c) = record.per_group.get_mut(label) {
@@ -405,6 +381,25 @@ pub(crate) fn shared_ground_label(
         }
     }
     best.map(|(g, _, _)| g)
+}
+
+/// Block NeRFs loaded when first needed, kept for the stage.
+#[derive(Default)]
+struct BlockNerfs(Vec<Option<NerfViewRenderer>>);
+
+impl BlockNerfs {
+    /// Block `b`'s NeRF, loaded from `map` on first use.
+    fn get(&mut self, map: &MapDir, b: usize) -> Result<&NerfViewRenderer, PipelineError> {
+        if self.0.len() <= b {
+            self.0.resize_with(b + 1, || None);
+        }
+        if self.0[b].is_none() {
+            self.0[b] = Some(load_nerf(map, b, 0)?);
+        }
+        self.0[b]
+            .as_ref()
+            .ok_or(PipelineError::Internal("NeRF not loaded"))
+    }
 }
 
 #[cfg(test)]
