@@ -123,8 +123,39 @@ pub struct MethodOptions {
     pub keypoints: KeypointBaselineOptions,
     /// iNeRF (the curriculum variant uses its own schedule with these step sizes).
     pub inerf: InerfOptions,
-    /// Structure localizer.
+    /// Structure localizer (also the settings of MatLoc's keypoint finish).
     pub structure: matloc_structure::StructureOptions,
+    /// MatLoc beyond the map's own localizer settings.
+    pub matloc: MatlocOptions,
+}
+
+/// Settings of the `matloc` method beyond the map's `localize` section.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MatlocOptions {
+    /// Place hypotheses to try, best first (`None`: the map's `localize.top_k`).
+    pub top_k: Option<usize>,
+    /// Finish with keypoints: the poses MatLoc's NeRF-feature passes reached (the accepted
+    /// one, else each refused hypothesis' with the most inliers first) start the structure
+    /// localizer ([`matloc_structure::localize_with_references`], with
+    /// [`MethodOptions::structure`]): the query's keypoints matched to the training images
+    /// that look the way the pose does, solved and patch-aligned. A pose that passes its
+    /// tests replaces MatLoc's; otherwise the query is refused (see `keep_unconfirmed`).
+    /// Needs a map with the structure stage (without one the finish is skipped).
+    pub keypoint_finish: bool,
+    /// With the keypoint finish, a pose MatLoc accepted that the finish cannot confirm is
+    /// kept (`false`: refused, so every answer is one the keypoints confirmed).
+    pub keep_unconfirmed: bool,
+}
+
+impl Default for MatlocOptions {
+    fn default() -> Self {
+        MatlocOptions {
+            top_k: None,
+            keypoint_finish: true,
+            keep_unconfirmed: false,
+        }
+    }
 }
 
 /// Localizes `image` (taken with `camera`) with `method` on `map`.
@@ -180,24 +211,7 @@ fn localize_method(
         return localize_structure(map, name, image, camera, &options.structure);
     }
     if method == Method::Matloc {
-        let loc = map.localizer().localize(image, camera)?;
-        let passes = loc.hypotheses.iter().map(|h| h.passes as u32).sum::<u32>();
-        return Ok(QueryResult {
-            name: name.to_string(),
-            method,
-            localized: loc.cam_from_world.is_some(),
-            camera_center: loc
-                .cam_from_world
-                .as_ref()
-                .map(|p| camera_center(p).coords.into()),
-            cam_from_world: loc.cam_from_world,
-            confidence: Some(loc.confidence),
-            inliers: loc.inliers,
-            iterations: passes,
-            hypotheses: loc.hypotheses,
-            stage_seconds: loc.stage_seconds,
-            total_seconds: loc.total_seconds,
-        });
+        return localize_matloc(map, name, image, camera, options);
     }
     let start = Instant::now();
     let (image, camera) = query_at_working_size(image, camera, map.options().max_side);
@@ -289,10 +303,125 @@ fn localize_method(
             failure,
             alignment: 0.0,
             log10_nfa: out.log10_nfa,
+            refined_cam_from_world: out.cam_from_world,
         }],
         stage_seconds,
         total_seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// MatLoc: the map's localizer (place → NeRF features → PnP), then the keypoint finish
+/// ([`MatlocOptions::keypoint_finish`]).
+fn localize_matloc(
+    map: &LoadedMap,
+    name: &str,
+    image: &Image<f32>,
+    camera: &Camera,
+    options: &MethodOptions,
+) -> Result<QueryResult, PipelineError> {
+    let start = Instant::now();
+    let mut localize_options = map.options();
+    if let Some(k) = options.matloc.top_k {
+        localize_options.top_k = k.max(1);
+    }
+    let max_side = localize_options.max_side;
+    let loc = map
+        .blocks
+        .localizer(map.place.as_ref(), map.solver.as_ref(), localize_options)
+        .localize(image, camera)?;
+    let passes = loc.hypotheses.iter().map(|h| h.passes as u32).sum::<u32>();
+    let mut result = QueryResult {
+        name: name.to_string(),
+        method: Method::Matloc,
+        localized: loc.cam_from_world.is_some(),
+        camera_center: None,
+        cam_from_world: loc.cam_from_world,
+        confidence: Some(loc.confidence),
+        inliers: loc.inliers,
+        iterations: passes,
+        hypotheses: loc.hypotheses,
+        stage_seconds: loc.stage_seconds,
+        total_seconds: 0.0,
+    };
+    if options.matloc.keypoint_finish
+        && let Some(structure) = map.structure.as_ref()
+    {
+        let t = Instant::now();
+        // (hypothesis index, pose): the accepted one first, then the refused by inliers.
+        let mut from: Vec<(usize, Pose)> = result
+            .hypotheses
+            .iter()
+            .enumerate()
+            .filter_map(|(i, h)| h.refined_cam_from_world.map(|p| (i, p)))
+            .collect();
+        from.sort_by_key(|&(i, _)| {
+            let h = &result.hypotheses[i];
+            (!h.accepted, std::cmp::Reverse(h.inliers))
+        });
+        let starts: Vec<Pose> = from.iter().map(|s| s.1).collect();
+        if !starts.is_empty() {
+            let (image, camera) = query_at_working_size(image, camera, max_side);
+            let mut rng = ChaCha8Rng::seed_from_u64(map.config.localize.seed);
+            let r = matloc_structure::localize_with_references(
+                structure,
+                image.as_ref(),
+                &camera,
+                &starts,
+                &options.structure,
+                Some(&NerfReferences { map }),
+                &mut rng,
+            )?;
+            if let Some(pose) = r.cam_from_world {
+                tracing::debug!(
+                    query = name,
+                    inliers = r.inliers,
+                    start = r.chosen_start,
+                    "keypoint finish accepted"
+                );
+                if let Some(&(i, _)) = r.chosen_start.and_then(|c| from.get(c)) {
+                    for (k, h) in result.hypotheses.iter_mut().enumerate() {
+                        h.accepted = k == i;
+                        if k == i {
+                            h.failure = None;
+                        }
+                    }
+                }
+                result.cam_from_world = Some(pose);
+                result.localized = true;
+                result.inliers = r.inliers;
+                result.confidence = Some(structure_confidence(
+                    r.log10_nfa,
+                    r.inliers,
+                    options.structure.min_inliers,
+                ));
+            } else if result.localized && !options.matloc.keep_unconfirmed {
+                tracing::debug!(
+                    query = name,
+                    "pose refused: the keypoint finish cannot confirm it"
+                );
+                result.cam_from_world = None;
+                result.localized = false;
+                result.confidence = Some(0.0);
+                for h in result.hypotheses.iter_mut().filter(|h| h.accepted) {
+                    h.accepted = false;
+                    h.failure = Some(
+                        "the keypoints do not confirm the pose (no consensus of the query's \
+                         keypoints with the training images that look its way)"
+                            .to_string(),
+                    );
+                }
+            }
+        }
+        result
+            .stage_seconds
+            .push(("keypoints".to_string(), t.elapsed().as_secs_f64()));
+    }
+    result.camera_center = result
+        .cam_from_world
+        .as_ref()
+        .map(|p| camera_center(p).coords.into());
+    result.total_seconds = start.elapsed().as_secs_f64();
+    Ok(result)
 }
 
 /// The structure method: the top place hypotheses as start poses, in order
@@ -358,6 +487,7 @@ fn localize_structure(
                 failure: None,
                 alignment: 0.0,
                 log10_nfa: None,
+                refined_cam_from_world: None,
             };
             match tried.last() {
                 Some(last) => {

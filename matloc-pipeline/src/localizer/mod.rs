@@ -106,6 +106,10 @@ pub struct HypothesisReport {
     /// (`None` when PnP gave no pose or the consensus was no larger than a minimal sample).
     #[serde(default)]
     pub log10_nfa: Option<f64>,
+    /// The pose the hypothesis' passes reached within the correction limits, accepted or
+    /// not (`None` when no pass solved one): where a later stage may start from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_cam_from_world: Option<Pose>,
 }
 
 /// The result of localizing one query.
@@ -325,6 +329,7 @@ impl Localizer<'_> {
                 failure: None,
                 alignment: 0.0,
                 log10_nfa: None,
+                refined_cam_from_world: None,
             };
             let Some(block) = self.blocks.get(block_id) else {
                 report.failure = Some(format!("no block {block_id} in the map"));
@@ -411,6 +416,7 @@ impl Localizer<'_> {
                 let moved_t = translation_error_m(&new_pose, &pose);
                 let moved_r = rotation_error_deg(&new_pose, &pose);
                 pose = new_pose;
+                report.refined_cam_from_world = Some(pose);
                 if best.as_ref().is_none_or(|b| c > b.0) {
                     best = Some((c, pass.inliers, pose));
                 }
