@@ -2,6 +2,7 @@
 every method and the COLMAP peer on three query sets, one table.
 
     python bench/outside/outside.py all   [--work DIR] [--scenes rubble,town] [--width 320 --height 240]
+    python bench/outside/outside.py all   --scenes rubble,rubble-gps   # + the survey with GPS-level pose noise
     python bench/outside/outside.py table [--work DIR]
     python bench/outside/outside.py smoke --out DIR      # the CI fixture (160x120, a handful of images)
 
@@ -33,6 +34,12 @@ ROOT = os.path.dirname(os.path.dirname(HERE))
 SETS = ["same", "second", "novel"]
 METHODS = ["structure", "matloc", "rgb-keypoints"]
 THRESHOLDS = [(0.25, 2.0), (0.5, 5.0), (5.0, 10.0)]
+# A `<scene>-gps` variant: the scene's survey with its training poses as a GPS/IMU gives them,
+# each camera centre moved by a random vector and its attitude turned about a random axis,
+# with these root-mean-square sizes (metres, degrees); images and queries are the scene's own.
+GPS_SUFFIX = "-gps"
+GPS_NOISE = (0.3, 1.0)
+GPS_SEED = 7
 
 
 def log(msg):
@@ -65,6 +72,70 @@ def render(scene, out, width, height, samples, smoke=False):
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     with open(out + ".render.log", "w") as logf:
         run(cmd, stdout=logf, stderr=subprocess.STDOUT)
+
+
+def rotation_about(axis_angle):
+    """Rotation matrix of a rotation vector (radians), Rodrigues' formula."""
+    theta = math.sqrt(sum(a * a for a in axis_angle))
+    if theta < 1e-12:
+        return [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    x, y, z = (a / theta for a in axis_angle)
+    c, s, v = math.cos(theta), math.sin(theta), 1.0 - math.cos(theta)
+    return [
+        [c + x * x * v, x * y * v - z * s, x * z * v + y * s],
+        [y * x * v + z * s, c + y * y * v, y * z * v - x * s],
+        [z * x * v - y * s, z * y * v + x * s, c + z * z * v],
+    ]
+
+
+def noisy_transform(m, rng, noise_m, noise_deg):
+    """`m` (4x4 camera-to-world) with its centre moved and its attitude turned in the world
+    frame: each axis drawn from N(0, size / sqrt 3), so the sizes are the RMS of the whole."""
+    dt = [rng.gauss(0.0, noise_m / math.sqrt(3.0)) for _ in range(3)]
+    dr = rotation_about([math.radians(rng.gauss(0.0, noise_deg / math.sqrt(3.0))) for _ in range(3)])
+    r = [row[:3] for row in m[:3]]
+    r2 = mat_mul(dr, r)
+    return [r2[i] + [m[i][3] + dt[i]] for i in range(3)] + [list(m[3])]
+
+
+def make_gps_variant(work, scene, d):
+    """WORK/<base>-gps: the base scene's images and queries (links) and its survey poses with
+    GPS-level noise ([`GPS_NOISE`]); scene.json records the noise and the applied offsets."""
+    import random
+
+    base = os.path.join(work, scene[: -len(GPS_SUFFIX)])
+    if not os.path.exists(os.path.join(base, "queries", "second", "transforms_test.json")):
+        raise SystemExit(f"{scene}: render its base scene first (--scenes {os.path.basename(base)},{scene})")
+    shutil.rmtree(d, ignore_errors=True)
+    os.makedirs(os.path.join(d, "survey"))
+    for link in ["queries", "raw_second", os.path.join("survey", "images")]:
+        at = os.path.join(d, link)
+        os.symlink(os.path.relpath(os.path.join(base, link), os.path.dirname(at)), at)
+    with open(os.path.join(base, "survey", "transforms_train.json")) as f:
+        doc = json.load(f)
+    rng = random.Random(GPS_SEED)
+    moved, turned = [], []
+    for fr in doc["frames"]:
+        m = fr["transform_matrix"]
+        n = noisy_transform(m, rng, *GPS_NOISE)
+        moved.append(math.dist([row[3] for row in m[:3]], [row[3] for row in n[:3]]))
+        rel = mat_mul(mat_t([row[:3] for row in n[:3]]), [row[:3] for row in m[:3]])
+        turned.append(math.degrees(math.acos(max(-1.0, min(1.0, (rel[0][0] + rel[1][1] + rel[2][2] - 1.0) / 2.0)))))
+        fr["transform_matrix"] = n
+    write_json(os.path.join(d, "survey", "transforms_train.json"), doc)
+    with open(os.path.join(base, "scene.json")) as f:
+        sc = json.load(f)
+    sc["variant"] = {
+        "of": os.path.basename(base),
+        "pose_noise_rms_m": GPS_NOISE[0],
+        "pose_noise_rms_deg": GPS_NOISE[1],
+        "seed": GPS_SEED,
+        "moved_m": {"median": median(moved), "max": max(moved)},
+        "turned_deg": {"median": median(turned), "max": max(turned)},
+    }
+    sc["total_seconds"] = 0.0  # nothing rendered: the base scene's images
+    write_json(os.path.join(d, "scene.json"), sc)
+    log(f"{scene}: survey poses moved {median(moved):.2f} m and turned {median(turned):.2f}° (median)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -331,6 +402,8 @@ def cmd_all(args):
         bin_path = matloc_bin()
     for scene in scenes:
         d = os.path.join(args.work, scene)
+        if scene.endswith(GPS_SUFFIX) and not os.path.exists(os.path.join(d, "scene.json")):
+            make_gps_variant(os.path.abspath(args.work), scene, d)
         if not os.path.exists(os.path.join(d, "scene.json")):
             shutil.rmtree(d, ignore_errors=True)
             os.makedirs(args.work, exist_ok=True)
