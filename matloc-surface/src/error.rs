@@ -28,8 +28,8 @@ pub enum SurfaceError {
     /// A frame sees too few surface points to stand in for its depth.
     #[error(
         "frame {frame} ({image}): the {source_kind} surface gives {found} points in this view, \
-         fewer than the {needed} needed (surface.min_points); add depth maps or a denser point \
-         cloud, or choose another source with --surface"
+         fewer than the {needed} needed (surface.min_points); {}",
+        too_few_points_remedy(*.source_kind)
     )]
     TooFewPoints {
         /// Frame index in the dataset.
@@ -84,5 +84,43 @@ pub enum SurfaceError {
 impl From<matloc_core::limits::LimitError> for SurfaceError {
     fn from(e: matloc_core::limits::LimitError) -> Self {
         SurfaceError::Limit(Box::new(e))
+    }
+}
+
+/// What to do about [`SurfaceError::TooFewPoints`] from a surface of `kind`.
+fn too_few_points_remedy(kind: SurfaceKind) -> &'static str {
+    match kind {
+        SurfaceKind::Triangulated => {
+            "with poses off by a degree or more (as GPS/IMU give them) few points' views agree \
+             within surface.triangulate.max_reprojection_px: refine the poses by structure from \
+             motion first, or raise that gate (and structure.triangulate.max_reprojection_px, \
+             about 5 px per degree at 320 px wide); else add depth maps or a point cloud"
+        }
+        _ => "add depth maps or a denser point cloud, or choose another source with --surface",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn too_few_points_says_what_to_change_for_its_source() {
+        let e = |kind| {
+            SurfaceError::TooFewPoints {
+                frame: 87,
+                image: PathBuf::from("survey/images/survey_00087.png"),
+                source_kind: kind,
+                found: 3,
+                needed: 12,
+            }
+            .to_string()
+        };
+        let triangulated = e(SurfaceKind::Triangulated);
+        assert!(
+            triangulated.contains("survey_00087.png") && triangulated.contains("gives 3 points")
+        );
+        assert!(triangulated.contains("surface.triangulate.max_reprojection_px"));
+        assert!(e(SurfaceKind::ColmapPoints).contains("--surface"));
     }
 }
