@@ -2,7 +2,8 @@
 every method and the COLMAP peer on three query sets, one table.
 
     python bench/outside/outside.py all   [--work DIR] [--scenes rubble,town] [--width 320 --height 240]
-    python bench/outside/outside.py all   --scenes rubble,rubble-gps   # + the survey with GPS-level pose noise
+    python bench/outside/outside.py all   --scenes rubble,rubble-gps,rubble-gps-refined
+                                          # + the survey with GPS-level pose noise, as given / refined
     python bench/outside/outside.py table [--work DIR]
     python bench/outside/outside.py smoke --out DIR      # the CI fixture (160x120, a handful of images)
 
@@ -40,6 +41,17 @@ THRESHOLDS = [(0.25, 2.0), (0.5, 5.0), (5.0, 10.0)]
 GPS_SUFFIX = "-gps"
 GPS_NOISE = (0.3, 1.0)
 GPS_SEED = 7
+# `<scene>-gps-refined`: the same noisy survey, its poses refined by `matloc dataset
+# refine-poses` before the map is built (the peer gets the noisy poses, as in `-gps`).
+REFINED_SUFFIX = "-gps-refined"
+
+
+def variant_base(scene):
+    """The scene a GPS variant is made from (`None` for a scene of its own)."""
+    for suffix in (REFINED_SUFFIX, GPS_SUFFIX):
+        if scene.endswith(suffix):
+            return scene[: -len(suffix)]
+    return None
 
 
 def log(msg):
@@ -103,7 +115,7 @@ def make_gps_variant(work, scene, d):
     GPS-level noise ([`GPS_NOISE`]); scene.json records the noise and the applied offsets."""
     import random
 
-    base = os.path.join(work, scene[: -len(GPS_SUFFIX)])
+    base = os.path.join(work, variant_base(scene))
     if not os.path.exists(os.path.join(base, "queries", "second", "transforms_test.json")):
         raise SystemExit(f"{scene}: render its base scene first (--scenes {os.path.basename(base)},{scene})")
     shutil.rmtree(d, ignore_errors=True)
@@ -402,8 +414,18 @@ def cmd_all(args):
         bin_path = matloc_bin()
     for scene in scenes:
         d = os.path.join(args.work, scene)
-        if scene.endswith(GPS_SUFFIX) and not os.path.exists(os.path.join(d, "scene.json")):
+        if variant_base(scene) and not os.path.exists(os.path.join(d, "scene.json")):
             make_gps_variant(os.path.abspath(args.work), scene, d)
+        survey = os.path.join(d, "survey")
+        if scene.endswith(REFINED_SUFFIX):
+            survey = os.path.join(d, "survey-refined")
+            if not os.path.exists(os.path.join(survey, "transforms.json")):
+                wall, cpu = run([bin_path, "--quiet", "dataset", "refine-poses", os.path.join(d, "survey"),
+                                 "--out", survey])
+                write_json(os.path.join(d, "refine-poses.json"), {"wall_seconds": wall, "cpu_seconds": cpu})
+            peer = os.path.join(args.work, variant_base(scene) + GPS_SUFFIX, "colmap")
+            if os.path.isdir(peer) and not os.path.exists(os.path.join(d, "colmap")):
+                os.symlink(os.path.relpath(peer, d), os.path.join(d, "colmap"))
         if not os.path.exists(os.path.join(d, "scene.json")):
             shutil.rmtree(d, ignore_errors=True)
             os.makedirs(args.work, exist_ok=True)
@@ -414,7 +436,7 @@ def cmd_all(args):
             # GPS-level poses put a point's views pixels apart (1° is 5 px at 320 px wide): the
             # variant's map loosens the triangulation gates (map-config-gps.json).
             config = "map-config-gps.json" if scene.endswith(GPS_SUFFIX) else "map-config.json"
-            wall, cpu = run([bin_path, "--quiet", "map", "build", "--data", os.path.join(d, "survey"),
+            wall, cpu = run([bin_path, "--quiet", "map", "build", "--data", survey,
                              "--out", os.path.join(d, "map"), "--config", os.path.join(HERE, config)])
             write_json(os.path.join(d, "map-build.json"), {"wall_seconds": wall, "cpu_seconds": cpu})
         for method in METHODS:

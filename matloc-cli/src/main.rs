@@ -103,6 +103,11 @@ enum DatasetCommand {
         #[arg(long)]
         quick: bool,
     },
+    /// Refine a survey's poses as a GPS/IMU gave them (about 0.3 m and 1° off): points
+    /// triangulated through a wide gate, then poses and points bundle-adjusted with the given
+    /// poses as priors; writes a nerfstudio transforms.json with the refined poses (its
+    /// frames refer to the same images) and prints how far they moved.
+    RefinePoses(dataset_cmd::RefinePosesArgs),
     /// Convert another dataset layout into a nerfstudio transforms.json.
     Import {
         #[command(subcommand)]
@@ -124,6 +129,9 @@ fn main() -> ExitCode {
         Command::Dataset {
             command: DatasetCommand::Import { format },
         } => import_cmd::run(&format),
+        Command::Dataset {
+            command: DatasetCommand::RefinePoses(args),
+        } => dataset_cmd::refine_poses(&args, cli.quiet),
         Command::Nerf(args) => nerf_cmd::run(&args, cli.quiet),
         Command::Partition(args) => partition_cmd::run(&args, cli.quiet),
         Command::Place { command } => place_cmd::run(&command, cli.quiet),

@@ -444,3 +444,55 @@ fn a_refused_build_leaves_nothing_behind() {
         }
     }
 }
+
+#[test]
+fn refine_poses_writes_a_dataset_that_reads_back_and_names_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("tiny");
+    let o = matloc(&["synth", "--preset", "tiny", "--out", data.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = dir.path().join("refined");
+    let o = matloc(&[
+        "--quiet",
+        "dataset",
+        "refine-poses",
+        data.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("reprojection error median") && t.contains("px"), "{t}");
+    let given = matloc_data::read_dataset(&data).unwrap();
+    let refined = matloc_data::read_dataset(&out).unwrap();
+    assert_eq!(given.frames.len(), refined.frames.len());
+    let mut moved: Vec<f64> = Vec::new();
+    for (a, b) in given.frames.iter().zip(&refined.frames) {
+        // The same images (their paths resolve to the same files).
+        assert_eq!(
+            given.image_path(a).canonicalize().unwrap(),
+            refined.image_path(b).canonicalize().unwrap()
+        );
+        moved.push(
+            (matloc_core::pose::camera_center(&a.cam_from_world)
+                - matloc_core::pose::camera_center(&b.cam_from_world))
+            .norm(),
+        );
+    }
+    // The exact survey's poses stay within what its short tracks pin (tiny's 160 × 120 views,
+    // 2–3 views per point): measured 0.24 m at the median, 0.64 m at most.
+    moved.sort_by(f64::total_cmp);
+    let (median, largest) = (moved[moved.len() / 2], moved[moved.len() - 1]);
+    assert!(median < 0.35 && largest < 1.0, "moved {median} m (median), {largest} m");
+
+    let o = matloc(&[
+        "dataset",
+        "refine-poses",
+        "/definitely/not/here",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(!o.status.success() && t.contains("/definitely/not/here"), "{t}");
+    assert!(!t.contains("panicked"), "{t}");
+}

@@ -73,6 +73,14 @@ pub enum SurfaceError {
         /// What is wrong.
         reason: String,
     },
+    /// An observation given to bundle adjustment is unusable.
+    #[error("bundle adjustment: observation {index}: {reason}")]
+    BadObservation {
+        /// Index into the observations.
+        index: usize,
+        /// What is wrong.
+        reason: String,
+    },
     /// The training cameras saw no surface point to sample virtual viewpoints over.
     #[error("virtual viewpoints: the training cameras saw no finite surface point")]
     NoSurfaceSeen,

@@ -17,6 +17,7 @@
 //!   the surface the training cameras saw ([`VirtualViewsConfig`], [`sample_viewpoints`]);
 //! - [`error`] holds [`SurfaceError`].
 
+pub mod bundle;
 pub mod config;
 pub mod densify;
 pub mod error;
