@@ -462,7 +462,10 @@ fn refine_poses_writes_a_dataset_that_reads_back_and_names_bad_input() {
     ]);
     let t = text(&o);
     assert!(o.status.success(), "{t}");
-    assert!(t.contains("reprojection error median") && t.contains("px"), "{t}");
+    assert!(
+        t.contains("reprojection error median") && t.contains("px"),
+        "{t}"
+    );
     let given = matloc_data::read_dataset(&data).unwrap();
     let refined = matloc_data::read_dataset(&out).unwrap();
     assert_eq!(given.frames.len(), refined.frames.len());
@@ -483,7 +486,10 @@ fn refine_poses_writes_a_dataset_that_reads_back_and_names_bad_input() {
     // 2–3 views per point): measured 0.24 m at the median, 0.64 m at most.
     moved.sort_by(f64::total_cmp);
     let (median, largest) = (moved[moved.len() / 2], moved[moved.len() - 1]);
-    assert!(median < 0.35 && largest < 1.0, "moved {median} m (median), {largest} m");
+    assert!(
+        median < 0.35 && largest < 1.0,
+        "moved {median} m (median), {largest} m"
+    );
 
     let o = matloc(&[
         "dataset",
@@ -493,6 +499,9 @@ fn refine_poses_writes_a_dataset_that_reads_back_and_names_bad_input() {
         out.to_str().unwrap(),
     ]);
     let t = text(&o);
-    assert!(!o.status.success() && t.contains("/definitely/not/here"), "{t}");
+    assert!(
+        !o.status.success() && t.contains("/definitely/not/here"),
+        "{t}"
+    );
     assert!(!t.contains("panicked"), "{t}");
 }
