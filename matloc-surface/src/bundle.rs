@@ -729,33 +729,29 @@ mod tests {
     fn bad_input_is_named() {
         let (poses, points, mut obs) = survey(3);
         let cameras = vec![camera(); poses.len()];
+        let run = |observations: &[Observation], cfg: &BundleConfig| {
+            adjust(
+                &BundleProblem {
+                    cameras: &cameras,
+                    poses: &poses,
+                    priors: &poses,
+                    points: &points,
+                    observations,
+                },
+                cfg,
+            )
+            .unwrap_err()
+        };
         obs[5].point = 10_000;
-        let e = adjust(
-            &BundleProblem {
-                cameras: &cameras,
-                poses: &poses,
-                priors: &poses,
-                points: &points,
-                observations: &obs,
-            },
-            &BundleConfig::default(),
-        )
-        .unwrap_err();
+        let e = run(&obs, &BundleConfig::default());
         assert!(e.to_string().contains("observation 5"), "{e}");
-        let e = adjust(
-            &BundleProblem {
-                cameras: &cameras,
-                poses: &poses,
-                priors: &poses,
-                points: &points,
-                observations: &[],
-            },
+        let e = run(
+            &[],
             &BundleConfig {
                 prior_position_m: 0.0,
                 ..BundleConfig::default()
             },
-        )
-        .unwrap_err();
+        );
         assert!(e.to_string().contains("prior_position_m"), "{e}");
     }
 }
