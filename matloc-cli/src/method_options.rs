@@ -12,8 +12,9 @@ use matloc_pipeline::methods::MethodOptions;
 #[derive(Args, Clone, Debug, Default)]
 pub struct MethodOptionsArgs {
     /// Settings of the methods as JSON, e.g. `{"keypoints": {"passes": 1}}` (rgb-keypoints
-    /// with the paper's single render) or `{"structure": {"neighbours": 10}}` (sections
-    /// `structure`, `keypoints`, `inerf`); keys left out keep their defaults.
+    /// with the paper's single render), `{"structure": {"neighbours": 10}}` or `{"matloc":
+    /// {"keypoint_finish": false}}` (MatLoc's NeRF-feature passes alone; sections `structure`,
+    /// `matloc`, `keypoints`, `inerf`); keys left out keep their defaults.
     #[arg(long, value_name = "FILE")]
     pub method_options: Option<PathBuf>,
 }
@@ -43,6 +44,12 @@ pub fn read(path: &Path) -> Result<MethodOptions> {
     if options.keypoints.passes == 0 {
         bail!(
             "method options {}: field `keypoints.passes`: must be at least 1",
+            path.display()
+        );
+    }
+    if options.matloc.top_k == Some(0) {
+        bail!(
+            "method options {}: field `matloc.top_k`: must be at least 1",
             path.display()
         );
     }
@@ -96,6 +103,12 @@ mod tests {
                 "keypoints.passes",
             ),
             ("section.json", r#"{"structur": {}}"#, "structur"),
+            ("top.json", r#"{"matloc": {"top_k": 0}}"#, "matloc.top_k"),
+            (
+                "finish.json",
+                r#"{"matloc": {"keypoint_finsh": false}}"#,
+                "matloc.keypoint_finsh",
+            ),
         ] {
             let p = write(name, text);
             let e = format!("{:#}", read(&p).unwrap_err());
