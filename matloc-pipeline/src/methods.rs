@@ -324,7 +324,18 @@ fn localize_matloc(
     if let Some(k) = options.matloc.top_k {
         localize_options.top_k = k.max(1);
     }
-    let max_side = localize_options.max_side;
+    // Reduced to the working size once, for the localizer and the keypoint finish (the
+    // localizer leaves a query already within `max_side` as it is); a query whose image and
+    // camera disagree is refused before, with their given sizes.
+    let (w, h, c) = image.shape();
+    if w != camera.width as usize || h != camera.height as usize || c != 3 {
+        return Err(PipelineError::QueryShape {
+            image: (w, h, c),
+            camera: (camera.width, camera.height),
+        });
+    }
+    let (image, camera) = query_at_working_size(image, camera, localize_options.max_side);
+    let (image, camera) = (image.as_ref(), &camera);
     let loc = map
         .blocks
         .localizer(map.place.as_ref(), map.solver.as_ref(), localize_options)
@@ -360,12 +371,11 @@ fn localize_matloc(
         });
         let starts: Vec<Pose> = from.iter().map(|s| s.1).collect();
         if !starts.is_empty() {
-            let (image, camera) = query_at_working_size(image, camera, max_side);
             let mut rng = ChaCha8Rng::seed_from_u64(map.config.localize.seed);
             let r = matloc_structure::localize_with_references(
                 structure,
-                image.as_ref(),
-                &camera,
+                image,
+                camera,
                 &starts,
                 &options.structure,
                 Some(&NerfReferences { map }),
