@@ -71,7 +71,7 @@ impl Default for KeypointConfig {
 /// Patch radius of the orientation moment and the BRIEF pattern.
 const PATCH_RADIUS: i32 = 15;
 /// Keypoints closer to the border than this are dropped (patch + Harris window).
-const BORDER: usize = PATCH_RADIUS as usize + 2;
+pub(crate) const BORDER: usize = PATCH_RADIUS as usize + 2;
 
 /// The 16-pixel Bresenham circle of radius 3, clockwise from the top.
 const CIRCLE: [(i32, i32); 16] = [
@@ -270,6 +270,30 @@ pub fn detect_and_describe(
     image: &GrayImage,
     config: &KeypointConfig,
 ) -> (Vec<Keypoint>, Vec<Descriptor>) {
+    detect_with(image, config, binary_describer)
+}
+
+/// The rotated-BRIEF describer of one pyramid level.
+pub(crate) fn binary_describer(
+    level: &GrayImage,
+) -> impl Fn(usize, usize, f32) -> Descriptor + Sync + use<> {
+    let smooth = level.gaussian_blur(2.0);
+    move |x, y, angle| describe(&smooth, x, y, angle)
+}
+
+/// Detects keypoints on a pyramid and describes each with `describer(level image)`, called
+/// once per level, whose result describes a keypoint at `(x, y)` of that level with its
+/// orientation.
+pub(crate) fn detect_with<D, F, G>(
+    image: &GrayImage,
+    config: &KeypointConfig,
+    describer: G,
+) -> (Vec<Keypoint>, Vec<D>)
+where
+    D: Send,
+    F: Fn(usize, usize, f32) -> D + Sync,
+    G: Fn(&GrayImage) -> F,
+{
     let levels = config.levels.max(1);
     let sf = config.scale_factor.max(1.01);
     // Budget per level proportional to its area (geometric series).
@@ -318,12 +342,12 @@ pub fn detect_and_describe(
                 chosen.push((x, y, r));
             }
         }
-        let smooth = level_img.gaussian_blur(2.0);
-        let described: Vec<(Keypoint, Descriptor)> = chosen
+        let describe_at = describer(&level_img);
+        let described: Vec<(Keypoint, D)> = chosen
             .par_iter()
             .map(|&(x, y, r)| {
                 let angle = orientation(&level_img, x, y);
-                let d = describe(&smooth, x, y, angle);
+                let d = describe_at(x, y, angle);
                 let (dx, dy) = if config.subpixel {
                     subpixel_offset(&level_img, x, y, r)
                 } else {
