@@ -860,10 +860,11 @@ fn info(root: &Path, json: bool) -> Result<()> {
     }
     if let Some(s) = &structure {
         outln!(
-            "  structure    {} points, {} observations in {} images{}",
+            "  structure    {} points, {} observations in {} images, {} descriptors{}",
             s.points,
             s.observations,
             s.images,
+            s.descriptors,
             s.reprojection.as_ref().map_or(String::new(), |r| format!(
                 ", reprojection error median {:.2} px, 95 % {:.2} px, max {:.2} px",
                 r.median_px, r.p95_px, r.max_px

@@ -32,8 +32,14 @@ impl MethodOptionsArgs {
 pub fn read(path: &Path) -> Result<MethodOptions> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| anyhow!("method options {}: {e}", path.display()))?;
-    let mut de = serde_json::Deserializer::from_str(&text);
-    let options: MethodOptions = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+    // Overlaid on the defaults, so that a partial section keeps the defaults of its own
+    // fields (`{"structure": {"gradient_matching": {"ratio": 0.8}}}` keeps the gradient
+    // matcher's distance cap, not a binary matcher's).
+    let over: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| anyhow!("method options {}: {e}", path.display()))?;
+    let mut merged = serde_json::to_value(MethodOptions::default())?;
+    matloc_pipeline::config::overlay_json(&mut merged, over);
+    let options: MethodOptions = serde_path_to_error::deserialize(merged).map_err(|e| {
         anyhow!(
             "method options {}: field `{}`: {}",
             path.display(),
@@ -67,6 +73,22 @@ mod tests {
         let p = dir.join(name);
         std::fs::write(&p, text).unwrap();
         p
+    }
+
+    #[test]
+    fn a_partial_section_keeps_its_own_defaults() {
+        let p = write(
+            "section.json",
+            r#"{"structure": {"gradient_matching": {"ratio": 0.8}}}"#,
+        );
+        let o = read(&p).unwrap();
+        let mut expected = MethodOptions::default();
+        expected.structure.gradient_matching.ratio = 0.8;
+        assert_eq!(o, expected);
+        assert_ne!(
+            o.structure.gradient_matching.max_distance,
+            o.structure.matching.max_distance
+        );
     }
 
     #[test]

@@ -5,7 +5,8 @@ use std::time::Instant;
 use matloc_core::pose::{Pose, camera_center};
 use matloc_core::{Camera, Image};
 use matloc_keypoints::{
-    GrayImage, Keypoint, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
+    Descriptor, GradientDescriptor, GrayImage, Keypoint, KeypointConfig, MatchConfig,
+    detect_and_describe, detect_and_describe_gradients, match_descriptors,
 };
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
 use nalgebra::{Point2, Point3, Vector2, Vector3};
@@ -25,8 +26,13 @@ pub struct StructureOptions {
     /// Query keypoints (the map's keypoints were detected with the same detector: detection
     /// at 2×, as the structure stage's triangulation does).
     pub keypoints: KeypointConfig,
-    /// Descriptor matching between the query and each nearby training image.
+    /// Which descriptor the query is matched with; maps built without gradient descriptors
+    /// use `binary` whatever this says.
+    pub descriptor: QueryDescriptor,
+    /// Binary-descriptor matching between the query and each nearby training image.
     pub matching: MatchConfig,
+    /// Gradient-descriptor matching between the query and each nearby training image.
+    pub gradient_matching: MatchConfig,
     /// Training images matched per start: the nearest by camera centre among those looking
     /// the same way.
     pub neighbours: usize,
@@ -90,6 +96,22 @@ pub struct StructureOptions {
     pub rendered: RenderedOptions,
 }
 
+/// Which descriptors a query is matched with.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum QueryDescriptor {
+    /// Rotated BRIEF.
+    Binary,
+    /// Gradient histograms: more correct matches under another light or viewpoint, placed
+    /// less precisely (a histogram cell tolerates a pixel of shift).
+    Gradient,
+    /// Binary; when every start is refused, the whole search again with gradient
+    /// histograms: the binary descriptor's precision wherever it finds a pose, the gradient
+    /// descriptor's matches where it does not.
+    #[default]
+    BinaryThenGradient,
+}
+
 /// Camera centres closer than this are the same place to the weak-consensus search, metres.
 const WEAK_SAME_PLACE_M: f64 = 5.0;
 
@@ -104,7 +126,12 @@ impl Default for StructureOptions {
                 upsample: true,
                 ..KeypointConfig::default()
             },
+            descriptor: QueryDescriptor::BinaryThenGradient,
             matching: MatchConfig::default(),
+            gradient_matching: MatchConfig {
+                ratio: 0.9,
+                ..MatchConfig::gradient()
+            },
             neighbours: 6,
             max_view_angle_deg: 37.0,
             pnp: PnpOptions::default(),
@@ -237,6 +264,71 @@ pub fn localize_with_references(
     renderer: Option<&dyn ReferenceRenderer>,
     rng: &mut dyn RngCore,
 ) -> Result<StructureResult, StructureError> {
+    let gradients = map.has_gradients();
+    let once = |options: &StructureOptions,
+                gradient: bool,
+                earlier_tests: usize,
+                rng: &mut dyn RngCore| {
+        localize_once(
+            map,
+            image,
+            camera,
+            starts,
+            options,
+            gradient,
+            earlier_tests,
+            renderer,
+            rng,
+        )
+    };
+    match options.descriptor {
+        QueryDescriptor::Binary => once(options, false, 0, rng),
+        QueryDescriptor::Gradient => once(options, gradients, 0, rng),
+        QueryDescriptor::BinaryThenGradient => {
+            let first = once(options, false, 0, rng)?;
+            if first.cam_from_world.is_some() || !gradients {
+                return Ok(first);
+            }
+            // The second search's consensuses are further tests of the same query: their
+            // false alarms are counted after the first search's.
+            let tests = first.starts.iter().map(|s| s.start + 1).max().unwrap_or(0);
+            // A gradient histogram also matches mirrored or merely similar structure, which a
+            // soft NeRF render does not tell apart: the second search accepts only poses
+            // some training image looks towards.
+            let seen_only = StructureOptions {
+                rendered: RenderedOptions {
+                    enabled: false,
+                    ..options.rendered.clone()
+                },
+                ..options.clone()
+            };
+            let mut second = once(&seen_only, true, tests, rng)?;
+            // The time of both attempts, per stage.
+            for (stage, secs) in first.stage_seconds {
+                match second.stage_seconds.iter_mut().find(|(s, _)| *s == stage) {
+                    Some((_, t)) => *t += secs,
+                    None => second.stage_seconds.push((stage, secs)),
+                }
+            }
+            Ok(second)
+        }
+    }
+}
+
+/// One localization with one kind of descriptor (`gradient`: the map's gradient
+/// descriptors, which it must have).
+#[allow(clippy::too_many_arguments)]
+fn localize_once(
+    map: &StructureMap,
+    image: &Image<f32>,
+    camera: &Camera,
+    starts: &[Pose],
+    options: &StructureOptions,
+    use_gradient: bool,
+    earlier_tests: usize,
+    renderer: Option<&dyn ReferenceRenderer>,
+    rng: &mut dyn RngCore,
+) -> Result<StructureResult, StructureError> {
     let renderer = renderer.filter(|_| options.rendered.enabled);
     let (w, h, c) = image.shape();
     if w != camera.width as usize || h != camera.height as usize || c != 3 {
@@ -250,14 +342,17 @@ pub fn localize_with_references(
     // map's training images.
     let plain = GrayImage::from_image(image);
     let gray = plain.clone().unsharp(options.query_sharpen, 1.0);
-    let (keypoints, descriptors) = detect_and_describe(&gray, &options.keypoints);
+    let (keypoints, descriptors) = describe_query(&gray, use_gradient, options);
     let mut seconds = vec![("keypoints".to_string(), t.elapsed().as_secs_f64())];
-    let mut time = Timer::default();
+    let mut time = Timer {
+        earlier_tests,
+        ..Timer::default()
+    };
     let planes = QueryPlanes::new(&gray);
     let query = Query {
         camera,
         keypoints: &keypoints,
-        descriptors: &descriptors,
+        descriptors: descriptors.as_ref(),
     };
     let mut reports = Vec::new();
     let mut best: Option<Solve> = None;
@@ -437,7 +532,69 @@ enum Attempt<'a> {
 struct Query<'a> {
     camera: &'a Camera,
     keypoints: &'a [Keypoint],
-    descriptors: &'a [matloc_keypoints::Descriptor],
+    descriptors: QueryDescriptors<'a>,
+}
+
+/// A query's descriptors, of the kind it is matched with.
+enum OwnedDescriptors {
+    Binary(Vec<Descriptor>),
+    Gradient(Vec<GradientDescriptor>),
+}
+
+impl OwnedDescriptors {
+    fn as_ref(&self) -> QueryDescriptors<'_> {
+        match self {
+            OwnedDescriptors::Binary(d) => QueryDescriptors::Binary(d),
+            OwnedDescriptors::Gradient(d) => QueryDescriptors::Gradient(d),
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+enum QueryDescriptors<'a> {
+    Binary(&'a [Descriptor]),
+    Gradient(&'a [GradientDescriptor]),
+}
+
+/// Largest binary (Hamming) and gradient (quantised Euclidean) distance: a match's distance
+/// over it is its normalised distance.
+const BINARY_MAX_DISTANCE: f32 = 256.0;
+const GRADIENT_MAX_DISTANCE: f32 = 724.0;
+
+/// Keypoints of a gray image with the descriptors of the kind asked for.
+fn describe_query(
+    gray: &GrayImage,
+    gradient: bool,
+    options: &StructureOptions,
+) -> (Vec<Keypoint>, OwnedDescriptors) {
+    if gradient {
+        let (k, d) = detect_and_describe_gradients(gray, &options.keypoints);
+        (k, OwnedDescriptors::Gradient(d))
+    } else {
+        let (k, d) = detect_and_describe(gray, &options.keypoints);
+        (k, OwnedDescriptors::Binary(d))
+    }
+}
+
+/// Matches of the query's descriptors with a set of the same kind: (query keypoint, other,
+/// normalised distance in `[0, 1]`). `binary` / `gradient` are the other set's descriptors
+/// of each kind (the one the query does not use may be empty).
+fn match_query(
+    query: QueryDescriptors<'_>,
+    binary: &[Descriptor],
+    gradient: &[GradientDescriptor],
+    options: &StructureOptions,
+) -> Vec<(usize, usize, f32)> {
+    match query {
+        QueryDescriptors::Binary(q) => match_descriptors(q, binary, &options.matching)
+            .into_iter()
+            .map(|m| (m.a, m.b, m.distance as f32 / BINARY_MAX_DISTANCE))
+            .collect(),
+        QueryDescriptors::Gradient(q) => match_descriptors(q, gradient, &options.gradient_matching)
+            .into_iter()
+            .map(|m| (m.a, m.b, m.distance as f32 / GRADIENT_MAX_DISTANCE))
+            .collect(),
+    }
 }
 
 #[derive(Default)]
@@ -446,6 +603,9 @@ struct Timer {
     pnp: f64,
     align: f64,
     render: f64,
+    /// Tests an earlier search of the same query made: every false-alarm count of this one
+    /// starts after them.
+    earlier_tests: usize,
 }
 
 /// The training images nearest `start` (camera centre) among those looking within the
@@ -463,8 +623,8 @@ fn nearest_images(map: &StructureMap, start: &Pose, options: &StructureOptions) 
         .collect()
 }
 
-/// A query keypoint's match: (Hamming distance, point, training image, observation).
-type Candidate = (u32, u32, u32, u32);
+/// A query keypoint's match: (normalised distance, point, training image, observation).
+type Candidate = (f32, u32, u32, u32);
 
 /// Per training image of a group, the query's matches with it: (query keypoint, candidate).
 type ImageMatches = Vec<Vec<(usize, Candidate)>>;
@@ -496,9 +656,9 @@ fn match_image(
     options: &StructureOptions,
 ) -> Vec<(usize, Candidate)> {
     let im = &map.images()[i];
-    match_descriptors(query.descriptors, &im.descriptor, &options.matching)
+    match_query(query.descriptors, &im.descriptor, &im.gradient, options)
         .into_iter()
-        .map(|m| (m.a, (m.distance, im.point[m.b], i as u32, m.b as u32)))
+        .map(|(a, b, d)| (a, (d, im.point[b], i as u32, b as u32)))
         .collect()
 }
 
@@ -560,8 +720,8 @@ fn solve_images(
     rng: &mut dyn RngCore,
     time: &mut Timer,
 ) -> Solve {
-    // Per query keypoint, its closest match (Hamming distance, point, image, observation)
-    // over the images.
+    // Per query keypoint, its closest match (distance, point, image, observation) over the
+    // images.
     let mut best: Vec<Option<Candidate>> = vec![None; query.keypoints.len()];
     for (q, c) in per_image.into_iter().flatten() {
         if best[q].is_none_or(|(bd, ..)| c.0 < bd) {
@@ -576,7 +736,7 @@ fn solve_images(
                 .pixels
                 .push(Point2::new(f64::from(k.x), f64::from(k.y)));
             matches.points.push(map.points()[*p as usize]);
-            matches.scores.push(1.0 - f64::from(*d) / 256.0);
+            matches.scores.push(1.0 - f64::from(*d));
             matches.source.push((*i, *o));
             matches.point.push(*p);
         }
@@ -616,9 +776,10 @@ fn solve_matches(
     time.pnp += t.elapsed().as_secs_f64();
     let (pose, inliers) = match solved {
         Ok(r) => {
-            // Bonferroni over the starts: start `index` is the (index + 1)-th test.
+            // Bonferroni over the starts: start `index` is the (index + 1)-th test of this
+            // search, after those of an earlier one.
             let nfa = solver.consensus_log10_nfa(camera, matches.pixels.len(), r.stats.num_inliers)
-                + ((index + 1) as f64).log10();
+                + ((time.earlier_tests + index + 1) as f64).log10();
             report.inliers = r.stats.num_inliers;
             report.log10_nfa = Some(nfa);
             report.accepted =
@@ -782,12 +943,16 @@ fn solve_rendered(
     }
     let t = Instant::now();
     let gray = GrayImage::from_image(&reference.image).unsharp(options.query_sharpen, 1.0);
-    let (kr, dr) = detect_and_describe(&gray, &options.keypoints);
-    let found = match_descriptors(query.descriptors, &dr, &options.matching);
+    let gradient = matches!(query.descriptors, QueryDescriptors::Gradient(_));
+    let (kr, dr) = describe_query(&gray, gradient, options);
+    let found = match dr {
+        OwnedDescriptors::Binary(d) => match_query(query.descriptors, &d, &[], options),
+        OwnedDescriptors::Gradient(d) => match_query(query.descriptors, &[], &d, options),
+    };
     let world_from_cam = pose.inverse();
     let mut matches = Matches::default();
-    for m in &found {
-        let k = kr[m.b];
+    for &(a, b, distance) in &found {
+        let k = kr[b];
         let (c, r) = (k.x.floor() as usize, k.y.floor() as usize);
         if c >= w || r >= h || reference.accumulation[r * w + c] < options.rendered.min_accumulation
         {
@@ -800,13 +965,13 @@ fn solve_rendered(
             continue;
         };
         let p_cam = bearing * (f64::from(z) / bearing.z);
-        let q = &query.keypoints[m.a];
+        let q = &query.keypoints[a];
         matches
             .pixels
             .push(Point2::new(f64::from(q.x), f64::from(q.y)));
         matches.points.push(world_from_cam * Point3::from(p_cam));
-        matches.scores.push(1.0 - f64::from(m.distance) / 256.0);
-        matches.source.push((u32::MAX, m.b as u32));
+        matches.scores.push(1.0 - f64::from(distance));
+        matches.source.push((u32::MAX, b as u32));
         matches.point.push(u32::MAX);
     }
     time.matching += t.elapsed().as_secs_f64();

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use matloc_core::Camera;
 use matloc_core::pose::{Pose, camera_center, viewing_direction};
-use matloc_keypoints::Descriptor;
+use matloc_keypoints::{Descriptor, GradientDescriptor};
 use matloc_surface::triangulate::TrackedPoints;
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
@@ -15,7 +15,8 @@ use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use crate::error::StructureError;
 
 /// Format tag in the file's metadata: `/2` may carry the training images' cameras and gray
-/// values for patch alignment; `/1` files (without them) still load.
+/// values for patch alignment and the observations' gradient descriptors; `/1` files
+/// (without either) still load.
 pub const STRUCTURE_FORMAT: &str = "matloc-structure/2";
 
 /// The earlier format tag, read as `/2` without appearance.
@@ -30,8 +31,11 @@ pub struct StructureImage {
     pub cam_from_world: Pose,
     /// Per observation: the point it observes (index into [`StructureMap::points`]).
     pub point: Vec<u32>,
-    /// Per observation: the keypoint's descriptor.
+    /// Per observation: the keypoint's binary descriptor.
     pub descriptor: Vec<Descriptor>,
+    /// Per observation: the keypoint's gradient-histogram descriptor (empty in maps built
+    /// without them).
+    pub gradient: Vec<GradientDescriptor>,
     /// Per observation: the keypoint's pixel at the detection size.
     pub pixel: Vec<[f32; 2]>,
     /// The image's camera and gray values at the detection size, for patch alignment
@@ -110,6 +114,11 @@ impl StructureMap {
                     .iter()
                     .map(|&(k, _)| im.descriptors[k as usize])
                     .collect(),
+                gradient: if im.gradients.len() == im.descriptors.len() {
+                    obs.iter().map(|&(k, _)| im.gradients[k as usize]).collect()
+                } else {
+                    Vec::new()
+                },
                 pixel: obs
                     .iter()
                     .map(|&(k, _)| {
@@ -129,7 +138,8 @@ impl StructureMap {
     }
 
     /// A structure from its parts; every observation must name an existing point and every
-    /// image have as many descriptors and pixels as observations.
+    /// image have as many descriptors and pixels as observations (and as many gradient
+    /// descriptors, or none).
     pub fn new(
         points: Vec<Point3<f64>>,
         images: Vec<StructureImage>,
@@ -139,11 +149,15 @@ impl StructureMap {
             reason,
         };
         for (i, im) in images.iter().enumerate() {
-            if im.descriptor.len() != im.point.len() || im.pixel.len() != im.point.len() {
+            if im.descriptor.len() != im.point.len()
+                || im.pixel.len() != im.point.len()
+                || !(im.gradient.is_empty() || im.gradient.len() == im.point.len())
+            {
                 return Err(bad(format!(
-                    "image {i}: {} points, {} descriptors, {} pixels",
+                    "image {i}: {} points, {} descriptors, {} gradient descriptors, {} pixels",
                     im.point.len(),
                     im.descriptor.len(),
+                    im.gradient.len(),
                     im.pixel.len()
                 )));
             }
@@ -252,6 +266,16 @@ impl StructureMap {
         })
     }
 
+    /// Whether every image's observations carry gradient descriptors (and there is one).
+    pub fn has_gradients(&self) -> bool {
+        !self.images.is_empty()
+            && self
+                .images
+                .iter()
+                .all(|im| im.gradient.len() == im.point.len())
+            && self.images.iter().any(|im| !im.gradient.is_empty())
+    }
+
     /// Observations over all images.
     pub fn observations(&self) -> usize {
         self.images.iter().map(|i| i.point.len()).sum()
@@ -260,7 +284,8 @@ impl StructureMap {
     /// The safetensors bytes: `points` f64 [P, 3], `image_frame` u32 [I], `image_pose` f64
     /// [I, 7] (cam_from_world as qw qx qy qz tx ty tz), `image_start` u32 [I + 1] (offsets
     /// into the observations), `obs_point` u32 [O], `obs_descriptor` u8 [O, 32],
-    /// `obs_pixel` f32 [O, 2]; when every image has its appearance, `image_camera` f64
+    /// `obs_pixel` f32 [O, 2]; when every image has gradient descriptors, `obs_gradient` u8
+    /// [O, 128]; when every image has its appearance, `image_camera` f64
     /// [I, 11] (width, height, fx, fy, cx, cy, k1, k2, p1, p2, k3), `image_gray_start` u64
     /// [I + 1] and `image_gray` u8 [G] (row-major gray values, image after image).
     pub fn to_bytes(&self) -> Result<Vec<u8>, StructureError> {
@@ -315,6 +340,17 @@ impl StructureMap {
             .map(|im| im.appearance.as_ref())
             .collect();
         let mut cols = cols.to_vec();
+        let obs_gradient: Vec<u8> = if self.has_gradients() {
+            self.images
+                .iter()
+                .flat_map(|im| im.gradient.iter().flatten().copied())
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if self.has_gradients() {
+            cols.push(("obs_gradient", Dtype::U8, vec![o, 128], &obs_gradient));
+        }
         if let Some(apps) = appearance.filter(|a| !a.is_empty()) {
             for app in apps {
                 let c = &app.camera;
@@ -466,6 +502,17 @@ impl StructureMap {
                 k / 2
             )));
         }
+        let obs_gradient = if v1 || st.tensor("obs_gradient").is_err() {
+            None
+        } else {
+            let (ng, raw) = column("obs_gradient", Dtype::U8, Some(128))?;
+            if ng != o {
+                return Err(bad(format!(
+                    "tensor `obs_gradient` has {ng} rows for {o} observations"
+                )));
+            }
+            Some(raw)
+        };
         let appearance = if v1 || st.tensor("image_camera").is_err() {
             None
         } else {
@@ -498,6 +545,12 @@ impl StructureMap {
                         })
                     })
                     .collect(),
+                gradient: obs_gradient.as_ref().map_or_else(Vec::new, |g| {
+                    g[128 * a..128 * b]
+                        .chunks_exact(128)
+                        .map(|c| c.try_into().expect("128 bytes"))
+                        .collect()
+                }),
                 pixel: obs_px[2 * a..2 * b]
                     .chunks_exact(2)
                     .map(|c| [c[0], c[1]])
@@ -604,6 +657,9 @@ pub(crate) mod tests {
             descriptors: (0..n)
                 .map(|k| [k as u64, seed, u64::MAX - k as u64, 7])
                 .collect(),
+            gradients: (0..n)
+                .map(|k| std::array::from_fn(|j| (j + k + seed as usize) as u8))
+                .collect(),
             gray: (0..100 * 80)
                 .map(|v| (v * 7 + seed as usize) as u8)
                 .collect(),
@@ -653,8 +709,8 @@ pub(crate) mod tests {
         for (a, b) in back.images().iter().zip(m.images()) {
             assert_eq!(a.frame, b.frame);
             assert_eq!(
-                (&a.point, &a.descriptor, &a.pixel),
-                (&b.point, &b.descriptor, &b.pixel)
+                (&a.point, &a.descriptor, &a.gradient, &a.pixel),
+                (&b.point, &b.descriptor, &b.gradient, &b.pixel)
             );
             assert!((a.cam_from_world.to_matrix() - b.cam_from_world.to_matrix()).norm() < 1e-12);
             assert!(a.appearance.is_some());
@@ -676,7 +732,9 @@ pub(crate) mod tests {
         let views: Vec<(String, TensorView<'_>)> = st
             .tensors()
             .into_iter()
-            .filter(|(n, _)| !n.starts_with("image_gray") && n != "image_camera")
+            .filter(|(n, _)| {
+                !n.starts_with("image_gray") && n != "image_camera" && n != "obs_gradient"
+            })
             .collect();
         let meta = HashMap::from([("format".to_string(), STRUCTURE_FORMAT_V1.to_string())]);
         safetensors::serialize(views, Some(meta)).unwrap()
@@ -688,6 +746,7 @@ pub(crate) mod tests {
         let back = StructureMap::from_bytes(&v1_bytes(&m), Path::new("s.safetensors")).unwrap();
         assert_eq!(back.images().len(), 3);
         assert!(back.images().iter().all(|im| im.appearance.is_none()));
+        assert!(!back.has_gradients());
         assert_eq!(back.images()[1].descriptor, m.images()[1].descriptor);
     }
 
@@ -723,6 +782,36 @@ pub(crate) mod tests {
         m.images[1].point[0] = 99;
         let err = StructureMap::from_bytes(&m.to_bytes().unwrap(), path).unwrap_err();
         assert!(err.to_string().contains("obs_point"), "{err}");
+        // Gradient descriptors for fewer observations than there are.
+        let mut m = sample();
+        m.images[0].gradient.pop();
+        assert!(StructureMap::new(m.points.clone(), m.images.clone()).is_err());
+        let mut bytes_of = sample();
+        bytes_of.images[0].gradient.clear();
+        bytes_of.images[1].gradient.clear();
+        bytes_of.images[2].gradient.clear();
+        let without = StructureMap::from_bytes(&bytes_of.to_bytes().unwrap(), path).unwrap();
+        assert!(!without.has_gradients());
+        // A file whose gradient tensor is one observation short.
+        let bytes = sample().to_bytes().unwrap();
+        let st = SafeTensors::deserialize(&bytes).unwrap();
+        let short: Vec<u8> = st.tensor("obs_gradient").unwrap().data()[128..].to_vec();
+        let views: Vec<(String, TensorView<'_>)> = st
+            .tensors()
+            .into_iter()
+            .map(|(n, v)| {
+                if n == "obs_gradient" {
+                    let t = TensorView::new(Dtype::U8, vec![3, 128], &short).unwrap();
+                    (n, t)
+                } else {
+                    (n, v)
+                }
+            })
+            .collect();
+        let meta = HashMap::from([("format".to_string(), STRUCTURE_FORMAT.to_string())]);
+        let bad = safetensors::serialize(views, Some(meta)).unwrap();
+        let err = StructureMap::from_bytes(&bad, path).unwrap_err();
+        assert!(err.to_string().contains("obs_gradient"), "{err}");
         // A non-finite point.
         let mut m = sample();
         m.points[1].x = f64::NAN;
@@ -762,6 +851,7 @@ mod reprojection_tests {
             cam_from_world: pose,
             point: (0..5).collect(),
             descriptor: vec![[0; 4]; 5],
+            gradient: Vec::new(),
             pixel: pixels,
             appearance: appearance.then(|| ImageAppearance {
                 camera,

@@ -56,6 +56,13 @@ pub struct TriangulateConfig {
     /// positions, more points, and more outliers in them; off for the surface, on for the
     /// map's keypoint structure.
     pub upsample: bool,
+    /// The descriptor pairs of images are matched with (every keypoint keeps both kinds).
+    pub pair_descriptor: matloc_keypoints::DescriptorKind,
+    /// Move each point to minimise its reprojection errors with the poses fixed
+    /// (structure-only bundle adjustment) after its rays' least-squares solution. Off: the
+    /// rays' solution already reprojects within 0.15 px (median) on 320 × 240 surveys, and
+    /// the refined points localized no query better.
+    pub refine_points: bool,
 }
 
 impl Default for TriangulateConfig {
@@ -69,6 +76,8 @@ impl Default for TriangulateConfig {
             max_view_angle_deg: 75.0,
             min_track_len: 2,
             upsample: false,
+            pair_descriptor: matloc_keypoints::DescriptorKind::Binary,
+            refine_points: false,
         }
     }
 }

@@ -22,6 +22,7 @@ pub mod config;
 pub mod densify;
 pub mod error;
 pub mod kind;
+mod reprojection;
 pub mod source;
 pub mod sunlight;
 pub mod triangulate;

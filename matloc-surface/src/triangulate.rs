@@ -4,8 +4,10 @@
 //! the two rays) and kept when both rays meet at `min_angle_deg` or more in front of both
 //! cameras and reproject within `max_reprojection_px`. Matches sharing a keypoint join into
 //! tracks (union-find); each track is re-solved over all its rays (least squares), its
-//! outlying observations dropped, and kept with `min_track_len` or more views. This is COLMAP's
-//! `point_triangulator` idea on the project's own keypoints.
+//! outlying observations dropped, then (`refine_points`) moved to minimise its reprojection
+//! errors with the poses fixed (structure-only bundle adjustment), the observations it then
+//! leaves beyond the gate dropped, and kept with `min_track_len` or more views. This is
+//! COLMAP's `point_triangulator` idea on the project's own keypoints.
 
 use matloc_core::Camera;
 use matloc_core::pose::{Pose, camera_center, viewing_direction};
@@ -13,12 +15,19 @@ use matloc_data::Dataset;
 use matloc_data::images::load_frame_image;
 use matloc_data::points::SparsePoints;
 use matloc_keypoints::{
-    Descriptor, GrayImage, KeypointConfig, MatchConfig, detect_and_describe, match_descriptors,
+    Descriptor, DescriptorKind, GradientDescriptor, GrayImage, KeypointConfig, MatchConfig,
+    detect_and_describe_both, match_descriptors,
 };
 use nalgebra::{Matrix3, Point2, Point3, Vector3};
 use rayon::prelude::*;
 
 use crate::config::TriangulateConfig;
+use crate::reprojection::{PointView, refine_point};
+
+/// Huber width of the points' structure-only refinement, pixels.
+const REFINE_HUBER_PX: f64 = 1.0;
+/// Most Levenberg–Marquardt steps of a point's refinement.
+const REFINE_ITERATIONS: usize = 10;
 use crate::error::SurfaceError;
 
 /// One image's keypoints, ready to triangulate.
@@ -31,6 +40,7 @@ struct Features {
     /// Unit ray directions, world frame.
     rays: Vec<Vector3<f64>>,
     descriptors: Vec<Descriptor>,
+    gradients: Vec<GradientDescriptor>,
     /// Gray values at the detection size, 8-bit, row-major.
     gray: Vec<u8>,
 }
@@ -47,8 +57,11 @@ pub struct ImageKeypoints {
     pub camera: Camera,
     /// Keypoint positions, pixels.
     pub pixels: Vec<Point2<f64>>,
-    /// Their descriptors.
+    /// Their binary descriptors (what pairs of training images are matched with).
     pub descriptors: Vec<Descriptor>,
+    /// Their gradient-histogram descriptors (what a query from another day or viewpoint is
+    /// matched with).
+    pub gradients: Vec<GradientDescriptor>,
     /// The image's gray values at the detection size (`camera`'s), 8-bit, row-major: what a
     /// localizer aligns patches to.
     pub gray: Vec<u8>,
@@ -130,6 +143,7 @@ pub fn triangulate_tracks(
             camera: f.camera,
             pixels: f.pixels,
             descriptors: f.descriptors,
+            gradients: f.gradients,
             gray: f.gray,
         })
         .collect();
@@ -154,7 +168,7 @@ fn features_of(
         ..KeypointConfig::default()
     };
     let gray = GrayImage::from_image(&image);
-    let (keypoints, descriptors) = detect_and_describe(&gray, &kp_config);
+    let (keypoints, descriptors, gradients) = detect_and_describe_both(&gray, &kp_config);
     let world_from_cam = frame.cam_from_world.inverse();
     let mut out = Features {
         frame: index,
@@ -164,19 +178,21 @@ fn features_of(
         pixels: Vec::with_capacity(keypoints.len()),
         rays: Vec::with_capacity(keypoints.len()),
         descriptors: Vec::with_capacity(keypoints.len()),
+        gradients: Vec::with_capacity(keypoints.len()),
         gray: gray
             .data()
             .iter()
             .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
             .collect(),
     };
-    for (k, d) in keypoints.iter().zip(descriptors) {
+    for ((k, d), g) in keypoints.iter().zip(descriptors).zip(gradients) {
         let px = Point2::new(f64::from(k.x), f64::from(k.y));
         if let Some(b) = camera.unproject(px) {
             out.pixels.push(px);
             out.rays
                 .push(world_from_cam.transform_vector(&b).normalize());
             out.descriptors.push(d);
+            out.gradients.push(g);
         }
     }
     Ok(out)
@@ -213,7 +229,15 @@ fn reprojection(f: &Features, x: &Point3<f64>, observed: Point2<f64>) -> Option<
 /// Matches of one image pair that triangulate consistently.
 fn pair_matches(a: &Features, b: &Features, config: &TriangulateConfig) -> Vec<(usize, usize)> {
     let min_sin = config.min_angle_deg.to_radians().sin();
-    match_descriptors(&a.descriptors, &b.descriptors, &MatchConfig::default())
+    let found = match config.pair_descriptor {
+        DescriptorKind::Binary => {
+            match_descriptors(&a.descriptors, &b.descriptors, &MatchConfig::default())
+        }
+        DescriptorKind::Gradient => {
+            match_descriptors(&a.gradients, &b.gradients, &MatchConfig::gradient())
+        }
+    };
+    found
         .into_iter()
         .filter(|m| {
             let (da, db) = (a.rays[m.a], b.rays[m.b]);
@@ -341,6 +365,26 @@ fn merge_tracks(
             x = y;
             if !obs.iter().all(|o| keep(&x, o)) {
                 continue;
+            }
+        }
+        if config.refine_points {
+            let views: Vec<PointView<'_>> = obs
+                .iter()
+                .map(|&(i, k)| PointView {
+                    camera: &features[i].camera,
+                    cam_from_world: &features[i].cam_from_world,
+                    pixel: features[i].pixels[k],
+                })
+                .collect();
+            let Some(y) = refine_point(&views, x, REFINE_HUBER_PX, REFINE_ITERATIONS) else {
+                continue;
+            };
+            x = y;
+            if !obs.iter().all(|o| keep(&x, o)) {
+                obs.retain(|o| keep(&x, o));
+                if obs.len() < config.min_track_len {
+                    continue;
+                }
             }
         }
         // Enough parallax between some pair of rays.

@@ -256,6 +256,51 @@ fn triangulated_points_lie_on_the_surface() {
     assert!(err < 0.05 && cover > 0.8, "{err} {cover}");
 }
 
+/// Points refined with the poses fixed (`refine_points`) reproject closer to their
+/// keypoints than the rays' least-squares points, and lie on the true surface at least as
+/// well.
+#[test]
+fn points_refined_with_the_poses_fixed_fit_their_keypoints_better() {
+    let f = fixture();
+    let train = f.dataset.split_indices(Split::Train);
+    let run = |refine_points: bool| {
+        let config = matloc_surface::TriangulateConfig {
+            refine_points,
+            ..Default::default()
+        };
+        let tracks = matloc_surface::triangulate::triangulate_tracks(
+            &f.dataset,
+            &train,
+            &config,
+            &|_, _, _| {},
+        )
+        .unwrap();
+        let (mut reprojection, mut depth) = (Vec::new(), Vec::new());
+        for (x, obs) in tracks.xyz.iter().zip(&tracks.observations) {
+            for &(img, k) in obs {
+                let im = &tracks.images[img as usize];
+                let fr = &f.dataset.frames[im.frame];
+                let px = im.camera.project_world(&fr.cam_from_world, x).unwrap();
+                reprojection.push((px - im.pixels[k as usize]).norm());
+                let truth: Image<f32> = load_frame_depth(&f.dataset, fr, 1).unwrap().unwrap();
+                let pc = fr.cam_from_world * x;
+                let at = fr.camera.project(&pc.coords).unwrap();
+                let z = f64::from(truth.data()[at.y as usize * truth.width() + at.x as usize]);
+                depth.push((pc.z - z).abs() / z);
+            }
+        }
+        let mean = reprojection.iter().sum::<f64>() / reprojection.len() as f64;
+        (mean, matloc_core::metrics::median(&depth).unwrap())
+    };
+    let (plain, refined) = (run(false), run(true));
+    eprintln!(
+        "mean reprojection error {:.3} → {:.3} px, median relative depth error {:.4} → {:.4}",
+        plain.0, refined.0, plain.1, refined.1
+    );
+    assert!(refined.0 < plain.0, "{plain:?} {refined:?}");
+    assert!(refined.1 <= plain.1 * 1.05, "{plain:?} {refined:?}");
+}
+
 #[test]
 fn too_few_points_names_the_frame_and_image() {
     let f = fixture();

@@ -225,6 +225,8 @@ pub struct StructureSummary {
     pub observations: usize,
     /// Training images with an observation.
     pub images: usize,
+    /// Descriptors kept per observation: `binary` or `binary+gradient`.
+    pub descriptors: &'static str,
     /// How far the points project from their keypoints (`None` for maps without the images'
     /// cameras).
     pub reprojection: Option<matloc_structure::ReprojectionStats>,
@@ -239,6 +241,11 @@ pub fn structure_summary(map: &MapDir) -> Option<StructureSummary> {
         points: s.points().len(),
         observations: s.observations(),
         images: s.images().len(),
+        descriptors: if s.has_gradients() {
+            "binary+gradient"
+        } else {
+            "binary"
+        },
         reprojection: s.reprojection_errors(),
     })
 }

@@ -83,12 +83,14 @@ fn plane_structure_of(texture: fn(f64, f64) -> f32) -> StructureMap {
             let pose = pose_above(12.0 * gx as f64, 12.0 * gy as f64, 0.05 * frame as f64);
             let image = render(&camera, &pose, texture);
             let gray = GrayImage::from_image(&image);
-            let (kps, descs) = detect_and_describe(&gray, &config);
+            let (kps, descs, gradients) =
+                matloc_keypoints::detect_and_describe_both(&gray, &config);
             let mut im = StructureImage {
                 frame,
                 cam_from_world: pose,
                 point: Vec::new(),
                 descriptor: Vec::new(),
+                gradient: Vec::new(),
                 pixel: Vec::new(),
                 appearance: Some(ImageAppearance {
                     camera,
@@ -99,12 +101,13 @@ fn plane_structure_of(texture: fn(f64, f64) -> f32) -> StructureMap {
                         .collect(),
                 }),
             };
-            for (k, d) in kps.iter().zip(descs) {
+            for ((k, d), g) in kps.iter().zip(descs).zip(gradients) {
                 let px = Point2::new(f64::from(k.x), f64::from(k.y));
                 if let Some(p) = on_ground(&camera, &pose, px) {
                     im.point.push(points.len() as u32);
                     points.push(p);
                     im.descriptor.push(d);
+                    im.gradient.push(g);
                     im.pixel.push([k.x, k.y]);
                 }
             }
@@ -158,6 +161,50 @@ fn a_query_between_training_views_localizes_to_centimetres() {
     );
     assert!(r.inliers >= 100, "{}", r.inliers);
     assert!(r.starts.iter().all(|s| s.start == 0));
+}
+
+/// Both descriptor kinds localize a query under other light (gain, gamma and offset of the
+/// ground's gray values): the gradient descriptor (the default) with at least as many
+/// inliers as the binary one, and a map without gradient descriptors falls back to binary.
+#[test]
+fn both_descriptors_localize_under_other_light() {
+    let map = plane_structure();
+    assert!(map.has_gradients());
+    let camera = camera();
+    let gt = pose_above(-3.1, 4.4, -0.25);
+    let relit = |x: f64, y: f64| (0.05 + 0.8 * ground(x, y).powf(1.6)).clamp(0.0, 1.0);
+    let query = render(&camera, &gt, relit);
+    let start = pose_above(-1.0, 2.0, 0.0);
+    let run = |map: &StructureMap, descriptor: QueryDescriptor| {
+        let options = StructureOptions {
+            descriptor,
+            ..StructureOptions::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let r = localize(map, &query, &camera, &[start], &options, &mut rng).unwrap();
+        let pose = r.cam_from_world.expect("localized");
+        let (te, re) = (
+            translation_error_m(&pose, &gt),
+            rotation_error_deg(&pose, &gt),
+        );
+        assert!(
+            te < 0.05 && re < 0.05,
+            "{descriptor:?}: {te:.4} m {re:.4} deg"
+        );
+        r.starts[0].inliers
+    };
+    let gradient = run(&map, QueryDescriptor::Gradient);
+    let binary = run(&map, QueryDescriptor::Binary);
+    eprintln!("inliers of the first solve: gradient {gradient}, binary {binary}");
+    assert!(gradient >= binary, "gradient {gradient}, binary {binary}");
+    // Without gradient descriptors the gradient setting matches with binary ones.
+    let mut images = map.images().to_vec();
+    for im in &mut images {
+        im.gradient.clear();
+    }
+    let plain = StructureMap::new(map.points().to_vec(), images).unwrap();
+    assert!(!plain.has_gradients());
+    assert_eq!(run(&plain, QueryDescriptor::Gradient), binary);
 }
 
 /// Aligning the query's patches to the training images' patches moves its keypoints onto
@@ -231,7 +278,8 @@ fn an_unrelated_image_is_refused_and_a_wrong_start_falls_through() {
 
 /// The number of false alarms counts the starts tried: the same start at position 5 reports
 /// `log10(6)` more than at position 0 (same RNG state, so the same consensus), and a
-/// threshold between the two accepts it only first.
+/// threshold between the two accepts it only first (one descriptor: a refusal would start
+/// the second search, with other matches and other false alarms).
 #[test]
 fn the_false_alarms_of_a_later_start_count_the_starts_before_it() {
     let map = plane_structure();
@@ -240,6 +288,7 @@ fn the_false_alarms_of_a_later_start_count_the_starts_before_it() {
     let query = render(&camera, &gt, ground);
     let away = looking_away();
     let o = StructureOptions {
+        descriptor: QueryDescriptor::Binary,
         second_pass: false,
         ..StructureOptions::default()
     };
