@@ -22,7 +22,10 @@ fn main() {
     let stages: Vec<&str> = args[4].split(',').collect();
     let mut map = matloc_pipeline::MapDir::open(map_path).expect("map");
     let manifest = map.manifest_mut();
-    let mut config = manifest.config.clone();
+    // The stored configuration through the current type first, so that it names every
+    // field: an overlay naming a field the stored one lacks would replace its section whole.
+    let stored: MapConfig = serde_json::from_value(manifest.config.clone()).expect("config");
+    let mut config = serde_json::to_value(&stored).expect("config");
     overlay_json(&mut config, overlay);
     let config: MapConfig = serde_json::from_value(config).expect("config");
     manifest
