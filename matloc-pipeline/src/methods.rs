@@ -508,14 +508,27 @@ fn localize_structure(
                     report.accepted = r.cam_from_world.is_some() && r.chosen_start == Some(i);
                     report.failure = if last.images == 0 {
                         Some("no training image looks the way this hypothesis does".into())
-                    } else if tried.iter().any(|s| s.unseen) {
+                    } else if let Some(unseen) = tried.iter().find(|s| s.unseen) {
                         Some(if options.rendered.enabled {
-                            "no training image looks the way the solved pose does, and the \
-                             view the map renders there disagrees with the query"
-                                .into()
+                            let agreed = unseen.render_agreement.map_or_else(
+                                || "no patch of it could be compared".to_string(),
+                                |a| format!("{:.0} % of its patches agree", 100.0 * a),
+                            );
+                            format!(
+                                "no training image looks the way the solved pose does, and the \
+                                 view the map renders there disagrees with the query ({agreed}, \
+                                 {:.0} % needed)",
+                                100.0 * options.rendered.min_agreement
+                            )
                         } else {
                             "no training image looks the way the solved pose does".into()
                         })
+                    } else if tried.iter().any(|s| s.behind) {
+                        Some(
+                            "the solved pose sees the map's points from behind the surface \
+                             the survey saw them on (a mirrored image?)"
+                                .into(),
+                        )
                     } else if tried.iter().any(|s| s.unconfirmed) {
                         Some(
                             "the consensus covers a small part of the image and the map points \
@@ -526,6 +539,7 @@ fn localize_structure(
                         None
                     };
                     report.log10_nfa = last.log10_nfa;
+                    report.refined_cam_from_world = last.cam_from_world;
                     Some(report)
                 }
                 // A place another process serves is reported (the server answers

@@ -76,6 +76,12 @@ pub struct StructureOptions {
     /// Patch alignment of the accepted pose's correspondences to the training images, then
     /// a last solve.
     pub align: AlignOptions,
+    /// Share of a consensus's inliers the query must see from the side the training cameras
+    /// saw them from (its ray to the point within 90° of their mean ray), else the consensus
+    /// is refused: an image mirrored top to bottom or left to right is consistent with a
+    /// camera reflected to the far side of nearly flat ground, under it, whose view rendered
+    /// by the map (the surface from behind) agrees with the image. 0 = off.
+    pub min_front_side: f64,
     /// A consensus whose inliers' convex hull covers less than this share of the query image
     /// is refused: a mirrored image matches the map only on mirror-symmetric parts of the
     /// scene, and their consensus sits in one part of it (tiny's mirrored views: at most 0.19
@@ -144,6 +150,7 @@ impl Default for StructureOptions {
             second_pass: true,
             query_sharpen: 1.0,
             align: AlignOptions::default(),
+            min_front_side: 0.5,
             min_inlier_hull: 0.15,
             confirmed_hull: 0.3,
             min_agreement: 0.5,
@@ -183,10 +190,21 @@ pub struct StartReport {
     /// points in view agreeing with the query, so it was not accepted.
     #[serde(default)]
     pub unconfirmed: bool,
+    /// The pose passed the inlier and NFA tests but sees fewer than `min_front_side` of its
+    /// inliers from the side the training images saw them from, so it was not accepted.
+    #[serde(default)]
+    pub behind: bool,
     /// The pose was confirmed by (or solved from) a view rendered at it, no training image
     /// looking its way.
     #[serde(default)]
     pub rendered: bool,
+    /// The pose this start solved (accepted or not; `None` when the solver found none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cam_from_world: Option<Pose>,
+    /// Share of a view rendered at the pose that agreed with the query, when one was
+    /// rendered to confirm it ([`render_agreement`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub render_agreement: Option<f64>,
 }
 
 /// The outcome of a structure localization.
@@ -212,6 +230,7 @@ pub struct StructureResult {
     pub stage_seconds: Vec<(String, f64)>,
 }
 
+#[derive(Clone)]
 struct Solve {
     pose: Option<Pose>,
     report: StartReport,
@@ -222,7 +241,7 @@ struct Solve {
 }
 
 /// A start's 2D–3D matches with where each came from.
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct Matches {
     pixels: Vec<Point2<f64>>,
     points: Vec<Point3<f64>>,
@@ -292,17 +311,7 @@ pub fn localize_with_references(
             // The second search's consensuses are further tests of the same query: their
             // false alarms are counted after the first search's.
             let tests = first.starts.iter().map(|s| s.start + 1).max().unwrap_or(0);
-            // A gradient histogram also matches mirrored or merely similar structure, which a
-            // soft NeRF render does not tell apart: the second search accepts only poses
-            // some training image looks towards.
-            let seen_only = StructureOptions {
-                rendered: RenderedOptions {
-                    enabled: false,
-                    ..options.rendered.clone()
-                },
-                ..options.clone()
-            };
-            let mut second = once(&seen_only, true, tests, rng)?;
+            let mut second = once(options, true, tests, rng)?;
             // The time of both attempts, per stage.
             for (stage, secs) in first.stage_seconds {
                 match second.stage_seconds.iter_mut().find(|(s, _)| *s == stage) {
@@ -365,6 +374,9 @@ fn localize_once(
     // weak one, the attempts up to `look_until` are tried as well.
     let mut accepted: Option<(usize, Solve)> = None;
     let mut look_until: Option<usize> = None;
+    // Consensuses that passed the inlier, false-alarm and side tests but that nothing
+    // confirmed (unseen, or unconfirmed): rivals of a weak accepted one elsewhere.
+    let mut rivals: Vec<Solve> = Vec::new();
     let mut i = 0;
     while i < attempts.len() && look_until.is_none_or(|end| i < end) {
         let mut first = match &mut attempts[i] {
@@ -380,6 +392,15 @@ fn localize_once(
                 &mut time,
             ),
         };
+        // A camera on the far side of the surface its inliers lie on: no photograph sees
+        // ground from under it.
+        if first.report.accepted
+            && let Some(pose) = first.pose
+            && front_side(map, &pose, &first) < options.min_front_side
+        {
+            first.report.accepted = false;
+            first.report.behind = true;
+        }
         // A pose the survey never looked at is a consensus with the wrong part of the scene:
         // on `building` one such pose had 16 inliers at NFA 10^-14, 54 m and 83° off.
         // A viewpoint beyond the survey: only a view rendered there can confirm it.
@@ -396,6 +417,7 @@ fn localize_once(
                 let agreement = reference
                     .and_then(|reference| render_agreement(&plain, &reference, &options.rendered));
                 time.matching += t.elapsed().as_secs_f64();
+                first.report.render_agreement = agreement;
                 agreement.is_some_and(|a| a >= options.rendered.min_agreement)
             });
             if confirmed {
@@ -414,6 +436,9 @@ fn localize_once(
         reports.push(first.report.clone());
         i += 1;
         if !first.report.accepted {
+            if first.report.unseen || first.report.unconfirmed {
+                rivals.push(first.clone());
+            }
             if let Some(pose) = first.pose
                 && first.report.inliers >= options.rendered.min_start_inliers
                 && let Some(at) = inlier_centroid(&first)
@@ -462,6 +487,22 @@ fn localize_once(
         if look_until.is_none() {
             look_until = Some(i + options.weak_more_starts);
         }
+    }
+    // A weak consensus may be a repeated part of the scene (a street block like the next)
+    // while the right place's consensus went unconfirmed: the views rendered at both decide.
+    if let Some(r) = renderer
+        && let Some((_, weak)) = accepted.as_mut()
+        && weak.report.inliers < options.weak_inliers
+        && let Some(rival) = rendered_rival(r, &plain, camera, weak, rivals, options, &mut time)
+    {
+        if let Some(report) = reports
+            .iter_mut()
+            .rev()
+            .find(|s| s.start == rival.report.start)
+        {
+            *report = rival.report.clone();
+        }
+        accepted = Some((rival.report.start, rival));
     }
     let chosen_start = accepted.as_ref().map(|(index, _)| *index);
     if let Some((index, mut chosen)) = accepted {
@@ -766,7 +807,10 @@ fn solve_matches(
         accepted: false,
         unseen: false,
         unconfirmed: false,
+        behind: false,
         rendered: false,
+        cam_from_world: None,
+        render_agreement: None,
     };
     let solver = LoRansacPnp::new(options.pnp.clone());
     let solved = solver.solve(
@@ -784,6 +828,7 @@ fn solve_matches(
             report.log10_nfa = Some(nfa);
             report.accepted =
                 r.stats.num_inliers >= options.min_inliers && nfa <= options.max_log10_nfa;
+            report.cam_from_world = Some(r.cam_from_world);
             (Some(r.cam_from_world), r.inliers)
         }
         Err(_) => (None, Vec::new()),
@@ -795,6 +840,89 @@ fn solve_matches(
         inliers,
         images: Vec::new(),
     }
+}
+
+/// The share of a view rendered at `solve`'s pose that agrees with the query (`None` when
+/// nothing could be rendered or compared); a share measured before is reused.
+fn rendered_share(
+    renderer: &dyn ReferenceRenderer,
+    query: &GrayImage,
+    camera: &Camera,
+    solve: &Solve,
+    options: &RenderedOptions,
+    time: &mut Timer,
+) -> Option<f64> {
+    if solve.report.render_agreement.is_some() {
+        return solve.report.render_agreement;
+    }
+    let pose = solve.pose?;
+    let at = inlier_centroid(solve)?;
+    let t = Instant::now();
+    let reference = renderer.render_reference(camera, &pose, &at);
+    time.render += t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let share = reference.and_then(|reference| render_agreement(query, &reference, options));
+    time.matching += t.elapsed().as_secs_f64();
+    share
+}
+
+/// The rival of a weak accepted consensus that a rendered view prefers: the rivals more than
+/// [`WEAK_SAME_PLACE_M`] from it (the one with the most inliers per place, at most
+/// `options.rendered.max_rivals`, most inliers first) are rendered with it, and the rival
+/// whose view agrees most with the query replaces it when that share is at least
+/// `options.rendered.min_agreement` and above the weak consensus's own. The rival comes back
+/// accepted and marked rendered.
+fn rendered_rival(
+    renderer: &dyn ReferenceRenderer,
+    query: &GrayImage,
+    camera: &Camera,
+    weak: &mut Solve,
+    mut rivals: Vec<Solve>,
+    options: &StructureOptions,
+    time: &mut Timer,
+) -> Option<Solve> {
+    let centre = camera_center(&weak.pose?);
+    rivals.sort_by_key(|s| std::cmp::Reverse(s.report.inliers));
+    let mut places: Vec<Solve> = Vec::new();
+    for rival in rivals {
+        let Some(c) = rival.pose.map(|p| camera_center(&p)) else {
+            continue;
+        };
+        let near = |p: &Solve| {
+            p.pose
+                .is_some_and(|q| (camera_center(&q) - c).norm() <= WEAK_SAME_PLACE_M)
+        };
+        if (c - centre).norm() > WEAK_SAME_PLACE_M && !places.iter().any(near) {
+            places.push(rival);
+        }
+        if places.len() >= options.rendered.max_rivals {
+            break;
+        }
+    }
+    if places.is_empty() {
+        return None;
+    }
+    let own = rendered_share(renderer, query, camera, weak, &options.rendered, time);
+    weak.report.render_agreement = own;
+    let mut best: Option<(f64, Solve)> = None;
+    for mut rival in places {
+        let share = rendered_share(renderer, query, camera, &rival, &options.rendered, time);
+        rival.report.render_agreement = share;
+        if let Some(share) = share
+            && share >= options.rendered.min_agreement
+            && own.is_none_or(|o| share > o)
+            && best.as_ref().is_none_or(|(b, _)| share > *b)
+        {
+            best = Some((share, rival));
+        }
+    }
+    best.map(|(_, mut rival)| {
+        rival.report.accepted = true;
+        rival.report.unseen = false;
+        rival.report.unconfirmed = false;
+        rival.report.rendered = true;
+        rival
+    })
 }
 
 /// Mean of the 3D points of `solve`'s inliers (`None` without inliers).
@@ -1062,6 +1190,32 @@ fn from_renders(
         }
     }
     None
+}
+
+/// Share of `solve`'s inliers that the camera at `pose` sees from the side their training
+/// images saw them from: the ray from the point to the camera within 90° of the mean of the
+/// unit rays from the point to the training cameras that observe it (1 without inliers).
+fn front_side(map: &StructureMap, pose: &Pose, solve: &Solve) -> f64 {
+    let centre = camera_center(pose);
+    let (mut front, mut all) = (0usize, 0usize);
+    for (k, &p) in solve.matches.point.iter().enumerate() {
+        if !solve.inliers.get(k).copied().unwrap_or(false) {
+            continue;
+        }
+        let x = map.points()[p as usize];
+        let mean: Vector3<f64> = map
+            .track(p as usize)
+            .iter()
+            .filter_map(|&(i, _)| (map.images()[i as usize].center() - x).try_normalize(0.0))
+            .sum();
+        all += 1;
+        front += usize::from(mean.dot(&(centre - x)) > 0.0);
+    }
+    if all == 0 {
+        1.0
+    } else {
+        front as f64 / all as f64
+    }
 }
 
 /// Whether `solve`'s consensus holds for the whole query: its inliers cover at least

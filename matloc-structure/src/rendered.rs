@@ -65,6 +65,10 @@ pub struct RenderedOptions {
     pub max_renders: usize,
     /// See `max_renders`.
     pub min_start_inliers: usize,
+    /// A weak accepted consensus (under the localizer's `weak_inliers`) is rendered with up
+    /// to this many unconfirmed consensuses at other places (one per place, most inliers
+    /// first), and the one whose view agrees most with the query is kept; 0 = off.
+    pub max_rivals: usize,
     /// Inliers a pose solved from a render needs (the NFA and image coverage tests are the
     /// localizer's own).
     pub min_inliers: usize,
@@ -83,6 +87,7 @@ impl Default for RenderedOptions {
             min_accumulation: 0.3,
             max_renders: 0,
             min_start_inliers: 8,
+            max_rivals: 3,
             min_inliers: 20,
             agree_m: 1.0,
             agree_deg: 3.0,

@@ -687,3 +687,113 @@ fn a_weak_consensus_gives_way_to_a_stronger_one_elsewhere() {
     assert_eq!(same.chosen_start, Some(0), "{:?}", same.starts);
     assert!(same.starts.iter().any(|s| s.start == 1));
 }
+
+/// A view mirrored top to bottom is consistent with the camera reflected under the ground,
+/// looking up, and the ground rendered from there agrees with it: the consensus is refused
+/// because its camera sees the map's points from behind, and accepted with the rule off.
+#[test]
+fn a_mirrored_view_solved_under_the_ground_is_refused() {
+    let (map, camera) = (plane_structure(), camera());
+    let gt = pose_above(4.3, -5.1, 0.12);
+    let view = render(&camera, &gt, ground);
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut mirrored = Image::new(w, h, 3);
+    for r in 0..h {
+        for c in 0..w {
+            mirrored
+                .pixel_mut(c, r)
+                .copy_from_slice(view.pixel(c, h - 1 - r));
+        }
+    }
+    let renderer = GroundRenderer { texture: ground };
+    let run = |min_front_side: f64| {
+        let options = StructureOptions {
+            min_front_side,
+            ..StructureOptions::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        localize_with_references(
+            &map,
+            &mirrored,
+            &camera,
+            &[gt],
+            &options,
+            Some(&renderer),
+            &mut rng,
+        )
+        .unwrap()
+    };
+    let off = run(0.0);
+    let pose = off.cam_from_world.expect("accepted with the rule off");
+    assert!(camera_center(&pose).z < 0.0, "{:?}", off.starts);
+    let on = run(StructureOptions::default().min_front_side);
+    assert!(on.cam_from_world.is_none(), "{:?}", on.starts);
+    assert!(on.starts.iter().any(|s| s.behind && !s.accepted));
+}
+
+/// A solve at `pose` with `inliers` inliers, one of them on the ground under the camera.
+fn solve_at(pose: Pose, start: usize, inliers: usize, unconfirmed: bool) -> Solve {
+    let c = camera_center(&pose);
+    Solve {
+        pose: Some(pose),
+        report: StartReport {
+            start,
+            images: 1,
+            matches: inliers,
+            inliers,
+            log10_nfa: Some(-10.0),
+            accepted: !unconfirmed,
+            unseen: false,
+            unconfirmed,
+            behind: false,
+            rendered: false,
+            cam_from_world: Some(pose),
+            render_agreement: None,
+        },
+        matches: Matches {
+            pixels: vec![Point2::new(160.0, 120.0)],
+            points: vec![Point3::new(c.x, c.y, 0.0)],
+            scores: vec![1.0],
+            source: vec![(0, 0)],
+            point: vec![0],
+        },
+        inliers: vec![true],
+        images: Vec::new(),
+    }
+}
+
+/// A weak consensus at the query's twin (a street block like the next) and an unconfirmed
+/// one at the true place: the views rendered at both prefer the true place, which comes back
+/// accepted; rendered at a scene unlike the query, neither view agrees and nothing changes.
+#[test]
+fn the_renders_choose_between_a_weak_consensus_and_a_rival_elsewhere() {
+    let camera = camera();
+    let gt = pose_above(6.0, 1.0, 0.05);
+    let query = GrayImage::from_image(&render(&camera, &gt, ground));
+    let twin = pose_above(-18.0, 1.0, 0.05);
+    let options = StructureOptions::default();
+    let run = |texture: fn(f64, f64) -> f32| {
+        let renderer = GroundRenderer { texture };
+        let mut weak = solve_at(twin, 0, 20, false);
+        let rivals = vec![
+            solve_at(pose_above(-17.0, 1.5, 0.05), 1, 19, true),
+            solve_at(gt, 2, 18, true),
+        ];
+        let mut time = Timer::default();
+        let chosen = rendered_rival(
+            &renderer, &query, &camera, &mut weak, rivals, &options, &mut time,
+        );
+        (weak, chosen)
+    };
+    let (weak, chosen) = run(ground);
+    let chosen = chosen.expect("the true place's render agrees");
+    assert_eq!(chosen.report.start, 2);
+    assert!(chosen.report.accepted && chosen.report.rendered && !chosen.report.unconfirmed);
+    let (own, theirs) = (
+        weak.report.render_agreement.unwrap(),
+        chosen.report.render_agreement.unwrap(),
+    );
+    assert!(theirs > own, "{theirs} vs {own}");
+    let (_, none) = run(other_ground);
+    assert!(none.is_none());
+}
