@@ -1,5 +1,6 @@
 //! Localizing a query against a [`StructureMap`] from one or more start poses.
 
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use matloc_core::pose::{Pose, camera_center};
@@ -362,6 +363,7 @@ fn localize_once(
         camera,
         keypoints: &keypoints,
         descriptors: descriptors.as_ref(),
+        matched: Mutex::new(vec![None; map.images().len()]),
     };
     let mut reports = Vec::new();
     let mut best: Option<Solve> = None;
@@ -574,6 +576,9 @@ struct Query<'a> {
     camera: &'a Camera,
     keypoints: &'a [Keypoint],
     descriptors: QueryDescriptors<'a>,
+    /// Per training image, the query's matches with it once made: the starts share most of
+    /// their images, and a match does not depend on the start.
+    matched: Mutex<Vec<Option<Arc<[(usize, Candidate)]>>>>,
 }
 
 /// A query's descriptors, of the kind it is matched with.
@@ -681,12 +686,42 @@ fn solve_from(
 ) -> Solve {
     let t = Instant::now();
     let images = nearest_images(map, start, options);
-    let per_image: Vec<Vec<(usize, Candidate)>> = images
-        .par_iter()
-        .map(|&i| match_image(map, query, i, options))
-        .collect();
+    let per_image = matches_with(map, query, &images, options);
     time.matching += t.elapsed().as_secs_f64();
     solve_images(map, query, images, per_image, index, options, rng, time)
+}
+
+/// The query's matches with each of `images` (in their order), made once per image and
+/// query.
+fn matches_with(
+    map: &StructureMap,
+    query: &Query<'_>,
+    images: &[usize],
+    options: &StructureOptions,
+) -> ImageMatches {
+    let missing: Vec<usize> = {
+        let matched = query.matched.lock().unwrap_or_else(|e| e.into_inner());
+        let mut missing: Vec<usize> = images
+            .iter()
+            .copied()
+            .filter(|&i| matched[i].is_none())
+            .collect();
+        missing.sort_unstable();
+        missing.dedup();
+        missing
+    };
+    let made: Vec<(usize, Arc<[(usize, Candidate)]>)> = missing
+        .par_iter()
+        .map(|&i| (i, match_image(map, query, i, options).into()))
+        .collect();
+    let mut matched = query.matched.lock().unwrap_or_else(|e| e.into_inner());
+    for (i, m) in made {
+        matched[i] = Some(m);
+    }
+    images
+        .iter()
+        .map(|&i| matched[i].as_deref().map_or_else(Vec::new, <[_]>::to_vec))
+        .collect()
 }
 
 /// The query's descriptor matches with training image `i`: (query keypoint, candidate).
@@ -712,10 +747,8 @@ fn retrieve(
     query: &Query<'_>,
     options: &StructureOptions,
 ) -> Vec<(Vec<usize>, ImageMatches)> {
-    let matches: ImageMatches = (0..map.images().len())
-        .into_par_iter()
-        .map(|i| match_image(map, query, i, options))
-        .collect();
+    let all: Vec<usize> = (0..map.images().len()).collect();
+    let matches = matches_with(map, query, &all, options);
     let votes: Vec<usize> = matches.iter().map(Vec::len).collect();
     let mut ranked: Vec<usize> = (0..votes.len()).collect();
     ranked.sort_by(|&a, &b| votes[b].cmp(&votes[a]).then(a.cmp(&b)));
