@@ -379,20 +379,50 @@ fn localize_once(
     // Consensuses that passed the inlier, false-alarm and side tests but that nothing
     // confirmed (unseen, or unconfirmed): rivals of a weak accepted one elsewhere.
     let mut rivals: Vec<Solve> = Vec::new();
+    // Each attempt draws from its own generator, seeded from the caller's and its index: the
+    // attempts are solved a batch at a time in parallel and judged in order, with the same
+    // outcome whatever the batch.
+    let seed = rng.next_u64();
+    let batch = rayon::current_num_threads().max(1);
+    let mut solved: std::collections::VecDeque<Solve> = std::collections::VecDeque::new();
     let mut i = 0;
     while i < attempts.len() && look_until.is_none_or(|end| i < end) {
-        let mut first = match &mut attempts[i] {
-            Attempt::Start(start) => solve_from(map, &query, start, i, options, rng, &mut time),
-            Attempt::Images(images, per_image) => solve_images(
-                map,
-                &query,
-                std::mem::take(images),
-                std::mem::take(per_image),
-                i,
-                options,
-                rng,
-                &mut time,
-            ),
+        if solved.is_empty() {
+            let end = (i + batch)
+                .min(attempts.len())
+                .min(look_until.unwrap_or(usize::MAX));
+            let jobs: Vec<(usize, Attempt)> = (i..end)
+                .map(|k| (k, std::mem::replace(&mut attempts[k], Attempt::Done)))
+                .collect();
+            let earlier_tests = time.earlier_tests;
+            let results: Vec<(Solve, Timer)> = jobs
+                .into_par_iter()
+                .map(|(k, job)| {
+                    let mut rng = attempt_rng(seed, k);
+                    let mut time = Timer {
+                        earlier_tests,
+                        ..Timer::default()
+                    };
+                    let solve = match job {
+                        Attempt::Start(start) => {
+                            solve_from(map, &query, start, k, options, &mut rng, &mut time)
+                        }
+                        Attempt::Images(images, per_image) => solve_images(
+                            map, &query, images, per_image, k, options, &mut rng, &mut time,
+                        ),
+                        Attempt::Done => unreachable!("an attempt is solved once"),
+                    };
+                    (solve, time)
+                })
+                .collect();
+            for (solve, t) in results {
+                time.matching += t.matching;
+                time.pnp += t.pnp;
+                solved.push_back(solve);
+            }
+        }
+        let Some(mut first) = solved.pop_front() else {
+            break;
         };
         // A camera on the far side of the surface its inliers lie on: no photograph sees
         // ground from under it.
@@ -570,6 +600,16 @@ enum Attempt<'a> {
     Start(&'a Pose),
     /// The images and their matches with the query (made when they were ranked).
     Images(Vec<usize>, ImageMatches),
+    /// Taken to be solved.
+    Done,
+}
+
+/// The generator of attempt `index` of a search seeded with `seed`.
+fn attempt_rng(seed: u64, index: usize) -> rand_chacha::ChaCha8Rng {
+    use rand::SeedableRng;
+    rand_chacha::ChaCha8Rng::seed_from_u64(
+        seed ^ (index as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+    )
 }
 
 struct Query<'a> {
@@ -578,7 +618,7 @@ struct Query<'a> {
     descriptors: QueryDescriptors<'a>,
     /// Per training image, the query's matches with it once made: the starts share most of
     /// their images, and a match does not depend on the start.
-    matched: Mutex<Vec<Option<Arc<[(usize, Candidate)]>>>>,
+    matched: Mutex<Vec<Option<SharedMatches>>>,
 }
 
 /// A query's descriptors, of the kind it is matched with.
@@ -675,6 +715,9 @@ type Candidate = (f32, u32, u32, u32);
 /// Per training image of a group, the query's matches with it: (query keypoint, candidate).
 type ImageMatches = Vec<Vec<(usize, Candidate)>>;
 
+/// The query's matches with one training image, kept for every start that uses it.
+type SharedMatches = Arc<[(usize, Candidate)]>;
+
 fn solve_from(
     map: &StructureMap,
     query: &Query<'_>,
@@ -710,7 +753,7 @@ fn matches_with(
         missing.dedup();
         missing
     };
-    let made: Vec<(usize, Arc<[(usize, Candidate)]>)> = missing
+    let made: Vec<(usize, SharedMatches)> = missing
         .par_iter()
         .map(|&i| (i, match_image(map, query, i, options).into()))
         .collect();

@@ -654,14 +654,15 @@ fn a_weak_consensus_gives_way_to_a_stronger_one_elsewhere() {
     let camera = camera();
     let gt = pose_above(6.0, 1.0, 0.05);
     let query = render(&camera, &gt, repeating_ground);
-    let run = |starts: &[Pose], weak_inliers: usize| {
+    let run_seeded = |starts: &[Pose], weak_inliers: usize, seed: u64| {
         let options = StructureOptions {
             weak_inliers,
             ..StructureOptions::default()
         };
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
         localize(&map, &query, &camera, starts, &options, &mut rng).unwrap()
     };
+    let run = |starts: &[Pose], weak_inliers: usize| run_seeded(starts, weak_inliers, 11);
     // From the start over the query's twin 24 m away, the first consensus is the twin (the
     // second pass then finds the true place). With 15 inliers enough, that start is the
     // last one tried.
@@ -673,12 +674,21 @@ fn a_weak_consensus_gives_way_to_a_stronger_one_elsewhere() {
         "{:?}",
         strong.starts
     );
-    // Every consensus weak: the true place from the second start has more inliers than the
-    // twin and replaces it.
-    let both = run(&[twin, pose_above(6.0, 0.0, 0.0)], 10_000);
-    let pose = both.cam_from_world.expect("localized");
-    assert!(translation_error_m(&pose, &gt) < 0.25, "{:?}", both.starts);
-    assert_eq!(both.chosen_start, Some(1), "{:?}", both.starts);
+    // Every consensus weak: whenever the first consensus is the twin (it is for some seeds;
+    // the twin start's images also see the true place), the true place from the second
+    // start has more inliers and replaces it.
+    let mut twin_first = 0;
+    for seed in 0..8 {
+        let both = run_seeded(&[twin, pose_above(6.0, 0.0, 0.0)], 10_000, seed);
+        let pose = both.cam_from_world.expect("localized");
+        assert!(translation_error_m(&pose, &gt) < 0.25, "{:?}", both.starts);
+        let first = both.starts[0].cam_from_world.expect("a consensus");
+        if (camera_center(&first) - camera_center(&gt)).norm() > WEAK_SAME_PLACE_M {
+            twin_first += 1;
+            assert_eq!(both.chosen_start, Some(1), "{:?}", both.starts);
+        }
+    }
+    assert!(twin_first > 0, "no seed found the twin first");
     // Two starts at the true place: the first consensus stays.
     let same = run(
         &[pose_above(6.0, 0.0, 0.0), pose_above(5.0, 2.0, 0.0)],
