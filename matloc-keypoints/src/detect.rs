@@ -168,14 +168,18 @@ fn harris(img: &GrayImage, x: usize, y: usize) -> f32 {
     a * b - c * c - 0.04 * (a + b) * (a + b)
 }
 
+/// Largest sub-pixel offset: under half a pixel, so that the refined position still rounds
+/// to the pixel it refines (`gradient::describe_gradients_at` finds it again that way).
+const MAX_SUBPIXEL: f32 = 0.49;
+
 /// Offset of the peak of the parabola through `(-1, a)`, `(0, b)`, `(1, c)`, within
-/// `[-0.5, 0.5]`; 0 where the three values do not make a maximum at the centre.
+/// `±MAX_SUBPIXEL`; 0 where the three values do not make a maximum at the centre.
 fn parabola_peak(a: f32, b: f32, c: f32) -> f32 {
     let curvature = a - 2.0 * b + c;
     if curvature >= 0.0 || !curvature.is_finite() {
         return 0.0;
     }
-    (0.5 * (a - c) / curvature).clamp(-0.5, 0.5)
+    (0.5 * (a - c) / curvature).clamp(-MAX_SUBPIXEL, MAX_SUBPIXEL)
 }
 
 /// Sub-pixel offset of a corner at `(x, y)` from its Harris response around it.
@@ -284,6 +288,41 @@ pub(crate) fn binary_describer(
 /// Detects keypoints on a pyramid and describes each with `describer(level image)`, called
 /// once per level, whose result describes a keypoint at `(x, y)` of that level with its
 /// orientation.
+/// The detector's pyramid of `image`: the image (upsampled 2× with `config.upsample`), then
+/// each level `config.scale_factor` smaller, down to the patch border.
+pub(crate) fn pyramid(image: &GrayImage, config: &KeypointConfig) -> Vec<GrayImage> {
+    let levels = config.levels.max(1);
+    let sf = config.scale_factor.max(1.01);
+    let base = if config.upsample {
+        image.resized(2 * image.width(), 2 * image.height())
+    } else {
+        image.clone()
+    };
+    let mut pyramid = Vec::with_capacity(levels);
+    for l in 0..levels {
+        if l > 0 {
+            let scale = sf.powi(l as i32);
+            let w = (base.width() as f32 / scale).round() as usize;
+            let h = (base.height() as f32 / scale).round() as usize;
+            if w <= 2 * BORDER || h <= 2 * BORDER {
+                break;
+            }
+            pyramid.push(base.resized(w, h));
+        } else {
+            pyramid.push(base.clone());
+        }
+    }
+    pyramid
+}
+
+/// Image pixels per pixel of `level` (x, y).
+pub(crate) fn level_scale(image: &GrayImage, level: &GrayImage) -> (f32, f32) {
+    (
+        image.width() as f32 / level.width().max(1) as f32,
+        image.height() as f32 / level.height().max(1) as f32,
+    )
+}
+
 pub(crate) fn detect_with<D, F, G>(
     image: &GrayImage,
     config: &KeypointConfig,
@@ -301,27 +340,11 @@ where
     let total: f32 = (0..levels).map(|l| area_ratio.powi(l as i32)).sum();
     let mut keypoints = Vec::new();
     let mut descriptors = Vec::new();
-    let base = if config.upsample {
-        image.resized(2 * image.width(), 2 * image.height())
-    } else {
-        image.clone()
-    };
-    let mut level_img = base.clone();
-    for l in 0..levels {
-        if l > 0 {
-            let scale = sf.powi(l as i32);
-            let w = (base.width() as f32 / scale).round() as usize;
-            let h = (base.height() as f32 / scale).round() as usize;
-            if w <= 2 * BORDER || h <= 2 * BORDER {
-                break;
-            }
-            level_img = base.resized(w, h);
-        }
-        let scale_x = image.width() as f32 / level_img.width().max(1) as f32;
-        let scale_y = image.height() as f32 / level_img.height().max(1) as f32;
+    for (l, level_img) in pyramid(image, config).iter().enumerate() {
+        let (scale_x, scale_y) = level_scale(image, level_img);
         let budget =
             ((config.max_keypoints as f32) * area_ratio.powi(l as i32) / total).ceil() as usize;
-        let mut cands = level_candidates(&level_img, config.fast_threshold);
+        let mut cands = level_candidates(level_img, config.fast_threshold);
         cands.sort_by(|a, b| b.2.total_cmp(&a.2));
         // Spread: at most 2× the area share of the budget per cell, strongest first.
         let cell = config.cell_px.max(8);
@@ -342,14 +365,14 @@ where
                 chosen.push((x, y, r));
             }
         }
-        let describe_at = describer(&level_img);
+        let describe_at = describer(level_img);
         let described: Vec<(Keypoint, D)> = chosen
             .par_iter()
             .map(|&(x, y, r)| {
-                let angle = orientation(&level_img, x, y);
+                let angle = orientation(level_img, x, y);
                 let d = describe_at(x, y, angle);
                 let (dx, dy) = if config.subpixel {
-                    subpixel_offset(&level_img, x, y, r)
+                    subpixel_offset(level_img, x, y, r)
                 } else {
                     (0.0, 0.0)
                 };

@@ -13,7 +13,11 @@
 
 use std::f32::consts::{SQRT_2, TAU};
 
-use crate::detect::{Descriptor, Keypoint, KeypointConfig, binary_describer, detect_with};
+use rayon::prelude::*;
+
+use crate::detect::{
+    Descriptor, Keypoint, KeypointConfig, binary_describer, detect_with, level_scale, pyramid,
+};
 use crate::gray::GrayImage;
 
 /// A 128-value gradient-histogram descriptor, quantised to bytes.
@@ -43,6 +47,43 @@ pub fn detect_and_describe_gradients(
         let field = GradientField::new(level);
         move |x, y, angle| field.describe(x as f32, y as f32, angle)
     })
+}
+
+/// Gradient-histogram descriptors of keypoints [`crate::detect_and_describe`] found in
+/// `image` with `config` (the same image and configuration): each described on its own
+/// pyramid level, exactly as [`detect_and_describe_gradients`] would have, without detecting
+/// again. A keypoint whose level the pyramid lacks gets an all-zero descriptor.
+pub fn describe_gradients_at(
+    image: &GrayImage,
+    config: &KeypointConfig,
+    keypoints: &[Keypoint],
+) -> Vec<GradientDescriptor> {
+    let pyramid = pyramid(image, config);
+    let used: Vec<bool> = (0..pyramid.len())
+        .map(|l| keypoints.iter().any(|k| usize::from(k.level) == l))
+        .collect();
+    let fields: Vec<Option<GradientField>> = pyramid
+        .par_iter()
+        .zip(used.par_iter())
+        .map(|(level, &used)| used.then(|| GradientField::new(level)))
+        .collect();
+    keypoints
+        .par_iter()
+        .map(|k| {
+            let l = usize::from(k.level);
+            match (pyramid.get(l), fields.get(l).and_then(Option::as_ref)) {
+                (Some(level), Some(field)) => {
+                    let (sx, sy) = level_scale(image, level);
+                    // The level pixel the detector described at: the keypoint's position
+                    // less its sub-pixel offset (under half a pixel), rounded.
+                    let x = (k.x / sx - 0.5).round();
+                    let y = (k.y / sy - 0.5).round();
+                    field.describe(x, y, k.angle)
+                }
+                _ => [0; 128],
+            }
+        })
+        .collect()
 }
 
 /// Detects keypoints as [`crate::detect_and_describe`] does and describes each both ways:
@@ -220,6 +261,31 @@ mod tests {
             .map(|&v| f32::from(v) * f32::from(v))
             .sum::<f32>()
             .sqrt()
+    }
+
+    /// Described after detection, on the keypoints a binary detection found, the gradient
+    /// descriptors are those a gradient detection gives, with and without the 2× upsampling.
+    #[test]
+    fn describing_detected_keypoints_again_gives_the_detections_descriptors() {
+        let img = texture(160, 120, 5);
+        for upsample in [false, true] {
+            let config = KeypointConfig {
+                upsample,
+                max_keypoints: 400,
+                ..KeypointConfig::default()
+            };
+            let (keypoints, _) = crate::detect_and_describe(&img, &config);
+            let (again, expected) = detect_and_describe_gradients(&img, &config);
+            assert!(keypoints.len() > 50, "{}", keypoints.len());
+            assert_eq!(keypoints, again);
+            let described = describe_gradients_at(&img, &config, &keypoints);
+            let differing = described
+                .iter()
+                .zip(&expected)
+                .filter(|(a, b)| a != b)
+                .count();
+            assert_eq!(differing, 0, "of {}", expected.len());
+        }
     }
 
     #[test]

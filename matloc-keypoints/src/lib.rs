@@ -20,8 +20,8 @@ mod matching;
 
 pub use detect::{Descriptor, Keypoint, KeypointConfig, detect_and_describe};
 pub use gradient::{
-    GradientDescriptor, GradientField, detect_and_describe_both, detect_and_describe_gradients,
-    gradient_distance_sq,
+    GradientDescriptor, GradientField, describe_gradients_at, detect_and_describe_both,
+    detect_and_describe_gradients, gradient_distance_sq,
 };
 pub use gray::GrayImage;
 pub use matching::{

@@ -7,7 +7,7 @@ use matloc_core::pose::{Pose, camera_center};
 use matloc_core::{Camera, Image};
 use matloc_keypoints::{
     Descriptor, GradientDescriptor, GrayImage, Keypoint, KeypointConfig, MatchConfig,
-    detect_and_describe, detect_and_describe_gradients, match_descriptors,
+    describe_gradients_at, detect_and_describe, detect_and_describe_gradients, match_descriptors,
 };
 use matloc_pnp::{LoRansacPnp, PnpInput, PnpOptions, PoseSolver};
 use nalgebra::{Point2, Point3, Vector2, Vector3};
@@ -284,62 +284,6 @@ pub fn localize_with_references(
     renderer: Option<&dyn ReferenceRenderer>,
     rng: &mut dyn RngCore,
 ) -> Result<StructureResult, StructureError> {
-    let gradients = map.has_gradients();
-    let once = |options: &StructureOptions,
-                gradient: bool,
-                earlier_tests: usize,
-                rng: &mut dyn RngCore| {
-        localize_once(
-            map,
-            image,
-            camera,
-            starts,
-            options,
-            gradient,
-            earlier_tests,
-            renderer,
-            rng,
-        )
-    };
-    match options.descriptor {
-        QueryDescriptor::Binary => once(options, false, 0, rng),
-        QueryDescriptor::Gradient => once(options, gradients, 0, rng),
-        QueryDescriptor::BinaryThenGradient => {
-            let first = once(options, false, 0, rng)?;
-            if first.cam_from_world.is_some() || !gradients {
-                return Ok(first);
-            }
-            // The second search's consensuses are further tests of the same query: their
-            // false alarms are counted after the first search's.
-            let tests = first.starts.iter().map(|s| s.start + 1).max().unwrap_or(0);
-            let mut second = once(options, true, tests, rng)?;
-            // The time of both attempts, per stage.
-            for (stage, secs) in first.stage_seconds {
-                match second.stage_seconds.iter_mut().find(|(s, _)| *s == stage) {
-                    Some((_, t)) => *t += secs,
-                    None => second.stage_seconds.push((stage, secs)),
-                }
-            }
-            Ok(second)
-        }
-    }
-}
-
-/// One localization with one kind of descriptor (`gradient`: the map's gradient
-/// descriptors, which it must have).
-#[allow(clippy::too_many_arguments)]
-fn localize_once(
-    map: &StructureMap,
-    image: &Image<f32>,
-    camera: &Camera,
-    starts: &[Pose],
-    options: &StructureOptions,
-    use_gradient: bool,
-    earlier_tests: usize,
-    renderer: Option<&dyn ReferenceRenderer>,
-    rng: &mut dyn RngCore,
-) -> Result<StructureResult, StructureError> {
-    let renderer = renderer.filter(|_| options.rendered.enabled);
     let (w, h, c) = image.shape();
     if w != camera.width as usize || h != camera.height as usize || c != 3 {
         return Err(StructureError::QueryShape {
@@ -347,22 +291,105 @@ fn localize_once(
             camera: (camera.width, camera.height),
         });
     }
+    let gradients = map.has_gradients();
     let t = Instant::now();
     // Sharpened before detection: a photo from another flight or camera is softer than the
     // map's training images.
     let plain = GrayImage::from_image(image);
     let gray = plain.clone().unsharp(options.query_sharpen, 1.0);
-    let (keypoints, descriptors) = describe_query(&gray, use_gradient, options);
-    let mut seconds = vec![("keypoints".to_string(), t.elapsed().as_secs_f64())];
+    let gradient_first = options.descriptor == QueryDescriptor::Gradient && gradients;
+    let (keypoints, descriptors) = describe_query(&gray, gradient_first, options);
+    let prepared = Prepared {
+        plain,
+        gray,
+        keypoints,
+    };
+    let first = localize_once(
+        map,
+        &prepared,
+        descriptors.as_ref(),
+        t.elapsed().as_secs_f64(),
+        camera,
+        starts,
+        options,
+        0,
+        renderer,
+        rng,
+    )?;
+    if options.descriptor != QueryDescriptor::BinaryThenGradient
+        || first.cam_from_world.is_some()
+        || !gradients
+    {
+        return Ok(first);
+    }
+    // The second search describes the same keypoints with gradient histograms; its
+    // consensuses are further tests of the same query, their false alarms counted after the
+    // first search's.
+    let t = Instant::now();
+    let gradient = OwnedDescriptors::Gradient(describe_gradients_at(
+        &prepared.gray,
+        &options.keypoints,
+        &prepared.keypoints,
+    ));
+    let tests = first.starts.iter().map(|s| s.start + 1).max().unwrap_or(0);
+    let mut second = localize_once(
+        map,
+        &prepared,
+        gradient.as_ref(),
+        t.elapsed().as_secs_f64(),
+        camera,
+        starts,
+        options,
+        tests,
+        renderer,
+        rng,
+    )?;
+    // The time of both attempts, per stage.
+    for (stage, secs) in first.stage_seconds {
+        match second.stage_seconds.iter_mut().find(|(s, _)| *s == stage) {
+            Some((_, t)) => *t += secs,
+            None => second.stage_seconds.push((stage, secs)),
+        }
+    }
+    Ok(second)
+}
+
+/// A query's gray images and keypoints, shared by both searches.
+struct Prepared {
+    /// The gray image as taken.
+    plain: GrayImage,
+    /// Sharpened for detection and alignment.
+    gray: GrayImage,
+    keypoints: Vec<Keypoint>,
+}
+
+/// One localization with one kind of descriptor (gradient descriptors only where the map has
+/// them); `keypoint_seconds` is what describing the query took.
+#[allow(clippy::too_many_arguments)]
+fn localize_once(
+    map: &StructureMap,
+    prepared: &Prepared,
+    descriptors: QueryDescriptors<'_>,
+    keypoint_seconds: f64,
+    camera: &Camera,
+    starts: &[Pose],
+    options: &StructureOptions,
+    earlier_tests: usize,
+    renderer: Option<&dyn ReferenceRenderer>,
+    rng: &mut dyn RngCore,
+) -> Result<StructureResult, StructureError> {
+    let renderer = renderer.filter(|_| options.rendered.enabled);
+    let (plain, gray, keypoints) = (&prepared.plain, &prepared.gray, &prepared.keypoints);
+    let mut seconds = vec![("keypoints".to_string(), keypoint_seconds)];
     let mut time = Timer {
         earlier_tests,
         ..Timer::default()
     };
-    let planes = QueryPlanes::new(&gray);
+    let planes = QueryPlanes::new(gray);
     let query = Query {
         camera,
-        keypoints: &keypoints,
-        descriptors: descriptors.as_ref(),
+        keypoints,
+        descriptors,
         matched: Mutex::new(vec![None; map.images().len()]),
     };
     let mut reports = Vec::new();
@@ -447,7 +474,7 @@ fn localize_once(
                 time.render += t.elapsed().as_secs_f64();
                 let t = Instant::now();
                 let agreement = reference
-                    .and_then(|reference| render_agreement(&plain, &reference, &options.rendered));
+                    .and_then(|reference| render_agreement(plain, &reference, &options.rendered));
                 time.matching += t.elapsed().as_secs_f64();
                 first.report.render_agreement = agreement;
                 agreement.is_some_and(|a| a >= options.rendered.min_agreement)
@@ -525,7 +552,7 @@ fn localize_once(
     if let Some(r) = renderer
         && let Some((_, weak)) = accepted.as_mut()
         && weak.report.inliers < options.weak_inliers
-        && let Some(rival) = rendered_rival(r, &plain, camera, weak, rivals, options, &mut time)
+        && let Some(rival) = rendered_rival(r, plain, camera, weak, rivals, options, &mut time)
     {
         if let Some(report) = reports
             .iter_mut()
