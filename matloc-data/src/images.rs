@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use image::codecs::png::PngEncoder;
 use image::{DynamicImage, ImageBuffer, Luma, Rgb};
 use matloc_core::{Camera, Image};
+use npyz::WriterBuilder;
 use thiserror::Error;
 
 use crate::dataset::{Dataset, Frame};
@@ -747,148 +748,155 @@ pub fn write_depth_npy(depth: &Image<f32>, path: &Path) -> Result<(), ImageLoadE
             reason: "depth must be finite and non-negative (0 = no depth)",
         });
     }
-    let bytes = encode_npy_f32(depth.width(), depth.height(), depth.data());
-    matloc_core::fsutil::write_atomic(path, &bytes).map_err(|e| io_error(path, e))
+    write_atomic_with(path, |f| {
+        let mut out = BufWriter::new(f);
+        write_npy_f32(&mut out, depth.width(), depth.height(), depth.data())?;
+        out.flush()
+    })
+    .map_err(|e| io_error(path, e))
 }
 
-/// Serialises a `(height, width)` float32 array in `.npy` format version 1.0.
+/// Serialises a `(height, width)` float32 array in `.npy` format (`<f4`, C order, the data
+/// aligned to 64 bytes).
+///
+/// # Panics
+/// If `data.len() != width * height`.
 pub fn encode_npy_f32(width: usize, height: usize, data: &[f32]) -> Vec<u8> {
-    let mut header =
-        format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({height}, {width}), }}");
-    // numpy pads the header with spaces so the data starts at a multiple of 64 bytes.
-    let unpadded = 10 + header.len() + 1;
-    header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
-    header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + 4 * data.len());
-    out.extend_from_slice(b"\x93NUMPY\x01\x00");
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
+    let mut out = Vec::with_capacity(128 + 4 * data.len());
+    write_npy_f32(&mut out, width, height, data)
+        .expect("encode_npy_f32 takes width * height values");
     out
 }
 
-/// The parts of an `.npy` header this crate uses.
-#[derive(Clone, Debug, PartialEq)]
-struct NpyHeader {
-    descr: String,
-    fortran_order: bool,
-    shape: Vec<usize>,
-    data_offset: usize,
+/// Streams a `(height, width)` float32 array as `.npy` into `out`; an error when `data` does
+/// not hold `width * height` values.
+fn write_npy_f32(out: impl Write, width: usize, height: usize, data: &[f32]) -> io::Result<()> {
+    // Little-endian whatever the host: npyz's default dtype follows the machine.
+    let dtype = npyz::DType::new_scalar("<f4".parse().expect("a valid type string"));
+    let mut writer = npyz::WriteOptions::<f32>::new()
+        .dtype(dtype)
+        .shape(&[height as u64, width as u64])
+        .writer(out)
+        .begin_nd()?;
+    writer.extend(data.iter().copied())?;
+    writer.finish()
 }
 
-fn parse_npy_header(bytes: &[u8]) -> Result<NpyHeader, String> {
-    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
-        return Err("missing \\x93NUMPY magic".into());
+/// Digits an accepted `.npy` header may hold in all. npyz multiplies the dimensions of the
+/// shape without overflow checks (a panic in a build that has them on); with at most 19 digits
+/// no product of the header's integers reaches 10^19 < 2^64. A depth map's header has about 10.
+const NPY_MAX_HEADER_DIGITS: usize = 19;
+
+/// Refuses what npyz would trust in an `.npy` header: a header length past the end of `bytes`
+/// (npyz allocates the declared length before reading it) and more digits than
+/// [`NPY_MAX_HEADER_DIGITS`]. Everything else npyz checks and names.
+fn check_npy_header(bytes: &[u8]) -> Result<(), String> {
+    if !bytes.starts_with(b"\x93NUMPY") {
+        return Ok(());
     }
-    let (len, start): (usize, usize) = match bytes[6] {
-        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 => {
-            if bytes.len() < 12 {
-                return Err("truncated header length".into());
-            }
-            (
-                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
-                12,
+    let lead = match bytes.get(6) {
+        Some(1) => 10,
+        Some(2 | 3) => 12,
+        _ => return Ok(()),
+    };
+    let Some(field) = bytes.get(8..lead) else {
+        return Ok(());
+    };
+    let len = field
+        .iter()
+        .rev()
+        .fold(0usize, |n, &b| (n << 8) | usize::from(b));
+    let text = bytes
+        .get(lead..)
+        .and_then(|rest| rest.get(..len))
+        .ok_or_else(|| {
+            format!(
+                "truncated header: {len} bytes declared, {} present",
+                bytes.len().saturating_sub(lead)
             )
-        }
-        v => return Err(format!("unsupported format version {v}")),
-    };
-    let end = start
-        .checked_add(len)
-        .filter(|&e| e <= bytes.len())
-        .ok_or("truncated header")?;
-    let text = std::str::from_utf8(&bytes[start..end]).map_err(|_| "header is not UTF-8")?;
-    let descr = dict_value(text, "descr")?;
-    let descr = descr
-        .trim()
-        .trim_matches(|c| c == '\'' || c == '"')
-        .to_string();
-    let fortran_order = match dict_value(text, "fortran_order")?.trim() {
-        "True" => true,
-        "False" => false,
-        other => return Err(format!("bad fortran_order `{other}`")),
-    };
-    let shape_text = dict_value(text, "shape")?.trim();
-    let inner = shape_text
-        .strip_prefix('(')
-        .and_then(|s| s.strip_suffix(')'))
-        .ok_or_else(|| format!("bad shape `{shape_text}`"))?;
-    let shape = inner
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-        .map(|s| {
-            s.parse::<usize>()
-                .map_err(|_| format!("bad shape `{shape_text}`"))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(NpyHeader {
-        descr,
-        fortran_order,
-        shape,
-        data_offset: end,
-    })
-}
-
-/// The text of `key`'s value in a Python dict literal (up to the next top-level comma).
-fn dict_value<'a>(text: &'a str, key: &str) -> Result<&'a str, String> {
-    let missing = || format!("header has no `{key}`");
-    let pos = text
-        .find(&format!("'{key}'"))
-        .or_else(|| text.find(&format!("\"{key}\"")))
-        .ok_or_else(missing)?;
-    let rest = &text[pos + key.len() + 2..];
-    let rest = rest.trim_start().strip_prefix(':').ok_or_else(missing)?;
-    let mut depth = 0i32;
-    for (i, ch) in rest.char_indices() {
-        match ch {
-            '(' => depth += 1,
-            ')' => depth -= 1,
-            ',' | '}' if depth == 0 => return Ok(&rest[..i]),
-            _ => {}
-        }
+        })?;
+    let digits = text.iter().filter(|b| b.is_ascii_digit()).count();
+    if digits > NPY_MAX_HEADER_DIGITS {
+        return Err(format!(
+            "header holds {digits} digits, more than a depth map's header needs \
+             ({NPY_MAX_HEADER_DIGITS})"
+        ));
     }
-    Err(missing())
+    Ok(())
 }
 
-/// Parses a float `.npy` depth map (`<f4` or `<f8`, C or Fortran order, shape `(H, W)` or
-/// `(H, W, 1)`) into a single-channel image. Never panics; the error says what is wrong.
-pub fn parse_npy(bytes: &[u8]) -> Result<Image<f32>, String> {
-    let header = parse_npy_header(bytes)?;
-    let (h, w) = match header.shape.as_slice() {
-        [h, w] | [h, w, 1] => (*h, *w),
-        other => return Err(format!("expected shape (H, W), got {other:?}")),
-    };
-    let item = match header.descr.as_str() {
-        "<f4" | "=f4" | "f4" => 4,
-        "<f8" | "=f8" | "f8" => 8,
+/// The header of an `.npy` file (read by npyz) and the offset of its data.
+fn read_npy_header(bytes: &[u8]) -> Result<(npyz::NpyHeader, usize), String> {
+    check_npy_header(bytes)?;
+    let mut rest = bytes;
+    let header = npyz::NpyHeader::from_reader(&mut rest).map_err(|e| match e.kind() {
+        io::ErrorKind::UnexpectedEof => "truncated header".to_string(),
+        _ => e.to_string(),
+    })?;
+    Ok((header, bytes.len() - rest.len()))
+}
+
+/// Height, width and value size of a depth map's `.npy` header: shape `(H, W)` or `(H, W, 1)`
+/// of little-endian float32 or float64.
+fn depth_layout(header: &npyz::NpyHeader) -> Result<(u64, u64, usize), String> {
+    let item = match header.dtype() {
+        npyz::DType::Plain(t)
+            if t.type_char() == npyz::TypeChar::Float
+                && t.endianness() == npyz::Endianness::Little
+                && matches!(t.size_field(), 4 | 8) =>
+        {
+            t.size_field() as usize
+        }
+        npyz::DType::Plain(t) => {
+            return Err(format!("expected little-endian float32/64 data, got `{t}`"));
+        }
         other => {
             return Err(format!(
-                "expected little-endian float32/64 data, got `{other}`"
+                "expected little-endian float32/64 data, got {}",
+                other.descr()
             ));
         }
     };
-    let n = h.checked_mul(w).ok_or("shape overflows")?;
-    let need = n.checked_mul(item).ok_or("shape overflows")?;
-    let data = &bytes[header.data_offset..];
+    match *header.shape() {
+        [h, w] | [h, w, 1] => Ok((h, w, item)),
+        ref other => Err(format!("expected shape (H, W), got {other:?}")),
+    }
+}
+
+/// Parses a float `.npy` depth map (`<f4`, or `<f8` converted to f32; C or Fortran order; shape
+/// `(H, W)` or `(H, W, 1)`) into a single-channel image. Never panics; the error says what is
+/// wrong.
+pub fn parse_npy(bytes: &[u8]) -> Result<Image<f32>, String> {
+    let (header, offset) = read_npy_header(bytes)?;
+    let (h, w, item) = depth_layout(&header)?;
+    let too_large = || format!("shape ({h}, {w}) is too large");
+    let (h, w) = (
+        usize::try_from(h).map_err(|_| too_large())?,
+        usize::try_from(w).map_err(|_| too_large())?,
+    );
+    let n = h.checked_mul(w).ok_or_else(too_large)?;
+    let need = n.checked_mul(item).ok_or_else(too_large)?;
+    let data = &bytes[offset..];
     if data.len() != need {
         return Err(format!(
             "shape ({h}, {w}) needs {need} data bytes, file has {}",
             data.len()
         ));
     }
+    let fortran = header.order() == npyz::Order::Fortran;
+    let file = npyz::NpyFile::with_header(header, data);
     let values: Vec<f32> = if item == 4 {
-        data.chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect()
+        file.data::<f32>()
+            .map_err(|e| e.to_string())?
+            .collect::<io::Result<_>>()
     } else {
-        data.chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("chunk of 8")) as f32)
-            .collect()
-    };
-    let values = if header.fortran_order {
+        file.data::<f64>()
+            .map_err(|e| e.to_string())?
+            .map(|v| v.map(|v| v as f32))
+            .collect::<io::Result<_>>()
+    }
+    .map_err(|e| e.to_string())?;
+    let values = if fortran {
         // Column-major: element (y, x) is at x * h + y.
         let mut out = vec![0.0f32; n];
         for y in 0..h {
@@ -915,23 +923,12 @@ pub fn npy_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
         .take(64 * 1024)
         .read_to_end(&mut head)
         .map_err(|e| io_error(path, e))?;
-    let header = parse_npy_header(&head).map_err(npy_err)?;
-    if !matches!(
-        header.descr.as_str(),
-        "<f4" | "=f4" | "f4" | "<f8" | "=f8" | "f8"
-    ) {
-        return Err(npy_err(format!(
-            "expected little-endian float32/64 data, got `{}`",
-            header.descr
-        )));
-    }
-    match header.shape.as_slice() {
-        [h, w] | [h, w, 1] => Ok((
-            u32::try_from(*w).map_err(|_| npy_err("width too large".into()))?,
-            u32::try_from(*h).map_err(|_| npy_err("height too large".into()))?,
-        )),
-        other => Err(npy_err(format!("expected shape (H, W), got {other:?}"))),
-    }
+    let (header, _) = read_npy_header(&head).map_err(npy_err)?;
+    let (h, w, _) = depth_layout(&header).map_err(npy_err)?;
+    Ok((
+        u32::try_from(w).map_err(|_| npy_err("width too large".into()))?,
+        u32::try_from(h).map_err(|_| npy_err("height too large".into()))?,
+    ))
 }
 
 /// Width and height of a depth map file (`.npy` or PNG), reading only its header.
@@ -949,6 +946,7 @@ pub fn depth_size(path: &Path) -> Result<(u32, u32), ImageLoadError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
     #[test]
     fn npy_round_trip_and_alignment() {
@@ -969,6 +967,191 @@ mod tests {
         bytes[at..at + from.len()].copy_from_slice(b"'fortran_order': True ");
         let img = parse_npy(&bytes).unwrap();
         assert_eq!(img.data(), &[1.0, 2.0, 3.0, 4.0]);
+    }
+
+    /// An `.npy` file with `dict` as its header text (padded as numpy pads it) and `data`.
+    fn npy_with(dict: &str, major: u8, data: &[u8]) -> Vec<u8> {
+        let lead = if major == 1 { 10 } else { 12 };
+        let mut header = dict.to_string();
+        while !(lead + header.len() + 1).is_multiple_of(64) {
+            header.push(' ');
+        }
+        header.push('\n');
+        let mut out = b"\x93NUMPY".to_vec();
+        out.extend_from_slice(&[major, 0]);
+        if major == 1 {
+            out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        } else {
+            out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+        }
+        out.extend_from_slice(header.as_bytes());
+        out.extend_from_slice(data);
+        out
+    }
+
+    fn npy_dict(descr: &str, fortran: bool, shape: &str) -> String {
+        let order = if fortran { "True" } else { "False" };
+        format!("{{'descr': '{descr}', 'fortran_order': {order}, 'shape': {shape}, }}")
+    }
+
+    #[test]
+    fn float64_is_read_as_float32() {
+        let data: Vec<u8> = [0.5f64, 1e3, 2.25, 0.0, 7.0, 1e-3]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let img = parse_npy(&npy_with(&npy_dict("<f8", false, "(2, 3)"), 1, &data)).unwrap();
+        assert_eq!(img.shape(), (3, 2, 1));
+        assert_eq!(img.data(), &[0.5, 1e3, 2.25, 0.0, 7.0, 1e-3f64 as f32]);
+    }
+
+    #[test]
+    fn shape_h_w_1_and_version_2_are_read() {
+        let data: Vec<u8> = [1.0f32, 2.0].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let img = parse_npy(&npy_with(&npy_dict("<f4", false, "(1, 2, 1)"), 2, &data)).unwrap();
+        assert_eq!(img.shape(), (2, 1, 1));
+        assert_eq!(img.data(), &[1.0, 2.0]);
+    }
+
+    #[test]
+    fn fortran_order_is_transposed_for_every_shape() {
+        // A 2 x 3 array stored column by column.
+        let data: Vec<u8> = [1.0f32, 4.0, 2.0, 5.0, 3.0, 6.0]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let img = parse_npy(&npy_with(&npy_dict("<f4", true, "(2, 3)"), 1, &data)).unwrap();
+        assert_eq!(img.shape(), (3, 2, 1));
+        assert_eq!(img.data(), &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+    }
+
+    #[test]
+    fn wrong_dtype_is_an_error_naming_it() {
+        for (descr, size) in [
+            ("<i4", 4),
+            (">f4", 4),
+            ("<f2", 2),
+            ("|u1", 1),
+            ("<c8", 8),
+            ("|O", 8),
+        ] {
+            let e = parse_npy(&npy_with(
+                &npy_dict(descr, false, "(2, 2)"),
+                1,
+                &vec![0; 4 * size],
+            ))
+            .unwrap_err();
+            assert!(
+                e.contains("expected little-endian float32/64"),
+                "{descr}: {e}"
+            );
+        }
+        for descr in ["zz", "<f16", "=f4"] {
+            assert!(parse_npy(&npy_with(&npy_dict(descr, false, "(2, 2)"), 1, &[0; 16])).is_err());
+        }
+    }
+
+    #[test]
+    fn wrong_number_of_dimensions_is_an_error() {
+        for shape in ["()", "(4,)", "(2, 2, 3)", "(1, 2, 2, 1)"] {
+            let e = parse_npy(&npy_with(&npy_dict("<f4", false, shape), 1, &[0; 48])).unwrap_err();
+            assert!(e.contains("expected shape (H, W)"), "{shape}: {e}");
+        }
+    }
+
+    #[test]
+    fn hostile_headers_are_errors_not_panics() {
+        let data = [0u8; 16];
+        for dict in [
+            npy_dict("<f4", false, "(1000000000000, 1000000000000)"),
+            npy_dict("<f4", false, "(4294967296, 4294967296, 1)"),
+            npy_dict("<f4", false, "(9223372036854775808, 2)"),
+            npy_dict("<f4", false, "(-1, 4)"),
+            npy_dict("<f4", false, "('a', 'b')"),
+            format!(
+                "{{'descr': '<f4', 'fortran_order': False, 'shape': {}2{} }}",
+                "(".repeat(30_000),
+                ")".repeat(30_000)
+            ),
+            "[1, 2, 3]".into(),
+            "{'fortran_order': False, 'shape': (2, 2), }".into(),
+            "{'descr': __import__('os').system('true'), 'fortran_order': False, 'shape': (1, 1), }"
+                .into(),
+        ] {
+            assert!(
+                parse_npy(&npy_with(&dict, 1, &data)).is_err(),
+                "{}",
+                &dict[..dict.len().min(80)]
+            );
+        }
+        // A version-2 header that claims 4 GiB.
+        let mut b = npy_with(&npy_dict("<f4", false, "(2, 2)"), 2, &data);
+        b[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+        let e = parse_npy(&b).unwrap_err();
+        assert!(e.contains("truncated header"), "{e}");
+        let mut b = npy_with(&npy_dict("<f4", false, "(2, 2)"), 1, &data);
+        b[6] = 9;
+        assert!(parse_npy(&b).is_err());
+        assert!(parse_npy(b"").is_err());
+    }
+
+    #[test]
+    fn truncated_or_padded_data_is_an_error_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let good = encode_npy_f32(3, 2, &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+        for n in 0..good.len() {
+            assert!(parse_npy(&good[..n]).is_err(), "prefix of {n} bytes parsed");
+        }
+        let path = dir.path().join("cut.npy");
+        std::fs::write(&path, &good[..good.len() - 1]).unwrap();
+        let e = read_depth_npy(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("cut.npy") && e.contains("needs 24 data bytes"),
+            "{e}"
+        );
+        std::fs::write(&path, &good[..40]).unwrap();
+        let e = read_depth_npy(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("cut.npy") && e.contains("truncated header"),
+            "{e}"
+        );
+        assert!(npy_size(&path).unwrap_err().to_string().contains("cut.npy"));
+        let mut longer = good.clone();
+        longer.extend_from_slice(&[0; 4]);
+        assert!(parse_npy(&longer).unwrap_err().contains("file has 28"));
+    }
+
+    #[test]
+    fn depth_npy_file_round_trip_is_atomic() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("d.npy");
+        let depth = Image::from_vec(3, 2, 1, vec![0.0, 1.5, 2.0, 70.25, 0.0, 1e4]).unwrap();
+        write_depth_npy(&depth, &path).unwrap();
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names, ["d.npy"]);
+        assert_eq!(read_depth_npy(&path).unwrap().data(), depth.data());
+        assert_eq!(npy_size(&path).unwrap(), (3, 2));
+        assert_eq!(depth_size(&path).unwrap(), (3, 2));
+        let bad = Image::from_vec(1, 1, 1, vec![-1.0]).unwrap();
+        assert!(write_depth_npy(&bad, &path).is_err());
+        assert_eq!(read_depth_npy(&path).unwrap().data(), depth.data());
+    }
+
+    proptest! {
+        #[test]
+        fn npy_round_trip(
+            (w, h, data) in (0usize..17, 0usize..17).prop_flat_map(|(w, h)| {
+                (Just(w), Just(h), prop::collection::vec(prop::num::f32::ANY, w * h))
+            })
+        ) {
+            let img = parse_npy(&encode_npy_f32(w, h, &data)).unwrap();
+            prop_assert_eq!(img.shape(), (w, h, 1));
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            prop_assert_eq!(bits(img.data()), bits(&data));
+        }
     }
 
     #[test]

@@ -1,15 +1,22 @@
-//! PLY point clouds: the vertex positions (and colours, when present) of an ASCII or binary
-//! (little- or big-endian) `.ply` file, and a binary little-endian writer.
+//! PLY point clouds through the `ply-rs-bw` crate: the vertex positions (and colours, when
+//! present) of an ASCII or binary (little- or big-endian) `.ply` file, and a binary
+//! little-endian writer.
 //!
 //! Only the `vertex` element's `x`, `y`, `z` (and `red`, `green`, `blue`) are kept; other
-//! properties and elements (faces, normals, lists) are parsed past. Counts are checked against
+//! properties and elements (faces, normals, lists) are read past. Counts are checked against
 //! the file size before anything is allocated, so a corrupt header cannot ask for gigabytes.
 
-use std::fmt::Write as _;
+use std::io::{BufRead, Cursor, ErrorKind};
 use std::path::{Path, PathBuf};
 
 use matloc_core::fsutil::write_atomic;
 use nalgebra::Point3;
+use ply_rs_bw::parser::{ParseError, Parser, Reader};
+use ply_rs_bw::ply::{
+    Addable, ElementDef, Encoding, Header, PropertyAccess, PropertyAccessResult, PropertyDef,
+    PropertyType, ScalarType,
+};
+use ply_rs_bw::writer::Writer;
 use thiserror::Error;
 
 /// Errors raised when reading or writing a PLY file.
@@ -56,61 +63,75 @@ pub struct PlyPoints {
     pub rgb: Option<Vec<[u8; 3]>>,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Encoding {
-    Ascii,
-    BinaryLe,
-    BinaryBe,
+/// The vertex properties kept, whatever their scalar type in the file; also the record
+/// [`ply_bytes`] writes.
+#[derive(Clone, Copy, Debug, Default)]
+struct Vertex {
+    xyz: [f64; 3],
+    rgb: [f64; 3],
 }
 
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Scalar {
-    I8,
-    U8,
-    I16,
-    U16,
-    I32,
-    U32,
-    F32,
-    F64,
-}
-
-impl Scalar {
-    fn parse(name: &str) -> Option<Scalar> {
-        Some(match name {
-            "char" | "int8" => Scalar::I8,
-            "uchar" | "uint8" => Scalar::U8,
-            "short" | "int16" => Scalar::I16,
-            "ushort" | "uint16" => Scalar::U16,
-            "int" | "int32" => Scalar::I32,
-            "uint" | "uint32" => Scalar::U32,
-            "float" | "float32" => Scalar::F32,
-            "double" | "float64" => Scalar::F64,
-            _ => return None,
-        })
-    }
-
-    fn size(self) -> usize {
-        match self {
-            Scalar::I8 | Scalar::U8 => 1,
-            Scalar::I16 | Scalar::U16 => 2,
-            Scalar::I32 | Scalar::U32 | Scalar::F32 => 4,
-            Scalar::F64 => 8,
-        }
+impl Vertex {
+    fn set(&mut self, name: &str, value: f64) -> PropertyAccessResult {
+        let slot = match name {
+            "x" => &mut self.xyz[0],
+            "y" => &mut self.xyz[1],
+            "z" => &mut self.xyz[2],
+            "red" => &mut self.rgb[0],
+            "green" => &mut self.rgb[1],
+            "blue" => &mut self.rgb[2],
+            _ => return PropertyAccessResult::Ignored,
+        };
+        *slot = value;
+        PropertyAccessResult::Set
     }
 }
 
-#[derive(Clone, Debug)]
-enum Property {
-    Scalar(String, Scalar),
-    List(Scalar, Scalar),
+impl PropertyAccess for Vertex {
+    fn new() -> Self {
+        Vertex::default()
+    }
+    fn set_char(&mut self, name: &str, value: i8) -> PropertyAccessResult {
+        self.set(name, value.into())
+    }
+    fn set_uchar(&mut self, name: &str, value: u8) -> PropertyAccessResult {
+        self.set(name, value.into())
+    }
+    fn set_short(&mut self, name: &str, value: i16) -> PropertyAccessResult {
+        self.set(name, value.into())
+    }
+    fn set_ushort(&mut self, name: &str, value: u16) -> PropertyAccessResult {
+        self.set(name, value.into())
+    }
+    fn set_int(&mut self, name: &str, value: i32) -> PropertyAccessResult {
+        self.set(name, value.into())
+    }
+    fn set_uint(&mut self, name: &str, value: u32) -> PropertyAccessResult {
+        self.set(name, value.into())
+    }
+    fn set_float(&mut self, name: &str, value: f32) -> PropertyAccessResult {
+        self.set(name, value.into())
+    }
+    fn set_double(&mut self, name: &str, value: f64) -> PropertyAccessResult {
+        self.set(name, value)
+    }
+    fn get_float(&self, name: &str) -> Option<f32> {
+        let i = ["x", "y", "z"].iter().position(|n| *n == name)?;
+        Some(self.xyz[i] as f32)
+    }
+    fn get_uchar(&self, name: &str) -> Option<u8> {
+        let i = ["red", "green", "blue"].iter().position(|n| *n == name)?;
+        Some(self.rgb[i] as u8)
+    }
 }
 
-#[derive(Clone, Debug)]
-struct Element {
-    name: String,
-    count: usize,
-    props: Vec<Property>,
+/// A record of an element other than `vertex`: read and dropped.
+struct Skipped;
+
+impl PropertyAccess for Skipped {
+    fn new() -> Self {
+        Skipped
+    }
 }
 
 /// Reads the vertices of a PLY file.
@@ -129,270 +150,162 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PlyPoints, PlyError> {
         line,
         reason,
     };
-    // The header is ASCII lines up to and including `end_header`.
-    let mut pos = 0;
-    let mut line_no = 0;
-    let mut encoding = None;
-    let mut elements: Vec<Element> = Vec::new();
-    loop {
-        let Some(nl) = bytes[pos..].iter().position(|&b| b == b'\n') else {
-            return Err(header_err(line_no + 1, "no `end_header` line".into()));
-        };
-        line_no += 1;
-        let line = std::str::from_utf8(&bytes[pos..pos + nl])
-            .map_err(|_| header_err(line_no, "header is not ASCII".into()))?
-            .trim_end_matches('\r')
-            .trim();
-        pos += nl + 1;
-        let mut words = line.split_whitespace();
-        let first = words.next().unwrap_or("");
-        if line_no == 1 {
-            if line != "ply" {
-                return Err(header_err(
-                    1,
-                    "not a PLY file (first line is not `ply`)".into(),
-                ));
-            }
-            continue;
+    let vertices = Parser::<Vertex>::new();
+    let mut reader = Reader::new(Cursor::new(bytes));
+    let header = vertices.read_header(&mut reader).map_err(|e| {
+        let line = e.line().unwrap_or(reader.line()).max(1);
+        let reason = message(&e);
+        if line == 1 {
+            header_err(
+                1,
+                format!("not a PLY file (first line is not `ply`): {reason}"),
+            )
+        } else {
+            header_err(line, reason)
         }
-        match first {
-            "" | "comment" | "obj_info" => {}
-            "format" => {
-                encoding = Some(match (words.next(), words.next()) {
-                    (Some("ascii"), Some("1.0")) => Encoding::Ascii,
-                    (Some("binary_little_endian"), Some("1.0")) => Encoding::BinaryLe,
-                    (Some("binary_big_endian"), Some("1.0")) => Encoding::BinaryBe,
-                    _ => return Err(header_err(line_no, format!("unsupported format `{line}`"))),
-                });
-            }
-            "element" => {
-                let (Some(name), Some(count)) = (words.next(), words.next()) else {
-                    return Err(header_err(line_no, "expected `element NAME COUNT`".into()));
-                };
-                let count: usize = count
-                    .parse()
-                    .map_err(|_| header_err(line_no, format!("bad element count `{count}`")))?;
-                elements.push(Element {
-                    name: name.to_string(),
-                    count,
-                    props: Vec::new(),
-                });
-            }
-            "property" => {
-                let Some(el) = elements.last_mut() else {
-                    return Err(header_err(line_no, "property before any element".into()));
-                };
-                let ty = words.next().unwrap_or("");
-                let prop = if ty == "list" {
-                    let (Some(ct), Some(it), Some(_name)) =
-                        (words.next(), words.next(), words.next())
-                    else {
-                        return Err(header_err(
-                            line_no,
-                            "expected `property list COUNT_TYPE ITEM_TYPE NAME`".into(),
-                        ));
-                    };
-                    let ct = Scalar::parse(ct)
-                        .ok_or_else(|| header_err(line_no, format!("unknown type `{ct}`")))?;
-                    let it = Scalar::parse(it)
-                        .ok_or_else(|| header_err(line_no, format!("unknown type `{it}`")))?;
-                    Property::List(ct, it)
-                } else {
-                    let s = Scalar::parse(ty)
-                        .ok_or_else(|| header_err(line_no, format!("unknown type `{ty}`")))?;
-                    let Some(name) = words.next() else {
-                        return Err(header_err(line_no, "property without a name".into()));
-                    };
-                    Property::Scalar(name.to_string(), s)
-                };
-                el.props.push(prop);
-            }
-            "end_header" => break,
-            other => return Err(header_err(line_no, format!("unknown keyword `{other}`"))),
-        }
+    })?;
+    let mut body = reader.into_inner();
+    let header_text = &bytes[..body.position() as usize];
+    let end_line = header_text.iter().filter(|&&b| b == b'\n').count();
+    if (header.version.major, header.version.minor) != (1, 0) {
+        let line = header_text
+            .split(|&b| b == b'\n')
+            .position(|l| l.starts_with(b"format"))
+            .map_or(end_line, |i| i + 1);
+        return Err(header_err(
+            line,
+            format!("unsupported format version {}", header.version),
+        ));
     }
-    let encoding = encoding.ok_or_else(|| header_err(line_no, "no `format` line".into()))?;
-    let body = &bytes[pos..];
-    let mut reader = Body {
-        bytes: body,
-        pos: 0,
-        encoding,
-        path,
+    let Some(vertex) = header.elements.get("vertex") else {
+        return Err(header_err(end_line, "no `vertex` element".into()));
     };
-    let mut out = PlyPoints::default();
-    for el in &elements {
-        let is_vertex = el.name == "vertex";
-        // Every record holds at least one byte (binary) or one number and a separator (ASCII).
-        let min_record = match encoding {
-            Encoding::Ascii => 2 * el.props.len().max(1),
-            _ => el
-                .props
-                .iter()
-                .map(|p| match p {
-                    Property::Scalar(_, s) => s.size(),
-                    Property::List(c, _) => c.size(),
-                })
-                .sum::<usize>()
-                .max(1),
-        };
-        if el.count > body.len().saturating_sub(reader.pos) / min_record + 1 {
-            return Err(PlyError::Body {
-                path: path.to_path_buf(),
-                element: el.name.clone(),
-                index: 0,
-                reason: format!(
-                    "header announces {} records but the file holds at most {}",
-                    el.count,
-                    body.len().saturating_sub(reader.pos) / min_record
-                ),
-            });
-        }
-        if !is_vertex {
-            for index in 0..el.count {
-                reader.skip_record(el, index)?;
-            }
-            continue;
-        }
-        let find = |n: &str| {
-            el.props
-                .iter()
-                .position(|p| matches!(p, Property::Scalar(name, _) if name == n))
-        };
-        let (Some(ix), Some(iy), Some(iz)) = (find("x"), find("y"), find("z")) else {
-            return Err(header_err(
-                line_no,
-                "element `vertex` lacks one of the properties x, y, z".into(),
-            ));
-        };
-        let colour = match (find("red"), find("green"), find("blue")) {
-            (Some(r), Some(g), Some(b)) => Some([r, g, b]),
-            _ => None,
-        };
-        out.xyz.reserve(el.count);
-        let mut rgb = colour.map(|_| Vec::with_capacity(el.count));
-        let mut values = vec![0.0f64; el.props.len()];
-        for index in 0..el.count {
-            reader.read_record(el, index, &mut values)?;
-            let p = Point3::new(values[ix], values[iy], values[iz]);
-            if !p.coords.iter().all(|v| v.is_finite()) {
-                return Err(PlyError::Body {
-                    path: path.to_path_buf(),
-                    element: el.name.clone(),
-                    index,
-                    reason: format!("non-finite position {p:?}"),
-                });
-            }
-            out.xyz.push(p);
-            if let (Some(c), Some(rgb)) = (colour, rgb.as_mut()) {
-                rgb.push(c.map(|k| values[k].clamp(0.0, 255.0) as u8));
-            }
-        }
-        out.rgb = rgb;
-        return Ok(out);
+    let scalar = |name: &str| {
+        vertex
+            .properties
+            .get(name)
+            .is_some_and(|p| matches!(p.data_type, PropertyType::Scalar(_)))
+    };
+    if !(scalar("x") && scalar("y") && scalar("z")) {
+        return Err(header_err(
+            end_line,
+            "element `vertex` lacks one of the properties x, y, z".into(),
+        ));
     }
-    Err(header_err(line_no, "no `vertex` element".into()))
-}
-
-struct Body<'a> {
-    bytes: &'a [u8],
-    pos: usize,
-    encoding: Encoding,
-    path: &'a Path,
-}
-
-impl Body<'_> {
-    fn err(&self, el: &Element, index: usize, reason: impl Into<String>) -> PlyError {
-        PlyError::Body {
-            path: self.path.to_path_buf(),
+    let colour = scalar("red") && scalar("green") && scalar("blue");
+    let skipped = Parser::<Skipped>::new();
+    let mut line = String::new();
+    for el in header.elements.values() {
+        let body_err = |index: usize, reason: String| PlyError::Body {
+            path: path.to_path_buf(),
             element: el.name.clone(),
             index,
-            reason: reason.into(),
+            reason,
+        };
+        let left = bytes.len() - body.position() as usize;
+        let most = left / min_record_bytes(el, header.encoding);
+        if el.count > most + 1 {
+            return Err(body_err(
+                0,
+                format!(
+                    "header announces {} records but the file holds at most {most}",
+                    el.count
+                ),
+            ));
         }
+        if el.name != "vertex" {
+            for index in 0..el.count {
+                read_record(&skipped, &mut body, header.encoding, el, &mut line)
+                    .map_err(|reason| body_err(index, reason))?;
+            }
+            continue;
+        }
+        let mut out = PlyPoints {
+            xyz: Vec::with_capacity(el.count),
+            rgb: colour.then(|| Vec::with_capacity(el.count)),
+        };
+        for index in 0..el.count {
+            let v = read_record(&vertices, &mut body, header.encoding, el, &mut line)
+                .map_err(|reason| body_err(index, reason))?;
+            let p = Point3::from(v.xyz);
+            if !p.coords.iter().all(|v| v.is_finite()) {
+                return Err(body_err(index, format!("non-finite position {p:?}")));
+            }
+            out.xyz.push(p);
+            if let Some(rgb) = out.rgb.as_mut() {
+                rgb.push(v.rgb.map(|c| c.clamp(0.0, 255.0) as u8));
+            }
+        }
+        return Ok(out);
     }
+    Err(header_err(end_line, "no `vertex` element".into()))
+}
 
-    fn scalar(&mut self, s: Scalar, el: &Element, index: usize) -> Result<f64, PlyError> {
-        if self.encoding == Encoding::Ascii {
-            // Skip whitespace, take one token.
-            while self.pos < self.bytes.len() && self.bytes[self.pos].is_ascii_whitespace() {
-                self.pos += 1;
-            }
-            let start = self.pos;
-            while self.pos < self.bytes.len() && !self.bytes[self.pos].is_ascii_whitespace() {
-                self.pos += 1;
-            }
-            if start == self.pos {
-                return Err(self.err(el, index, "file ends inside the record"));
-            }
-            let tok = std::str::from_utf8(&self.bytes[start..self.pos]).unwrap_or("?");
-            return tok
-                .parse::<f64>()
-                .map_err(|_| self.err(el, index, format!("cannot parse `{tok}` as a number")));
-        }
-        let n = s.size();
-        if self.pos + n > self.bytes.len() {
-            return Err(self.err(el, index, "file ends inside the record"));
-        }
-        let mut b = [0u8; 8];
-        b[..n].copy_from_slice(&self.bytes[self.pos..self.pos + n]);
-        if self.encoding == Encoding::BinaryBe {
-            b[..n].reverse();
-        }
-        self.pos += n;
-        Ok(match s {
-            Scalar::I8 => f64::from(b[0] as i8),
-            Scalar::U8 => f64::from(b[0]),
-            Scalar::I16 => f64::from(i16::from_le_bytes([b[0], b[1]])),
-            Scalar::U16 => f64::from(u16::from_le_bytes([b[0], b[1]])),
-            Scalar::I32 => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            Scalar::U32 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            Scalar::F32 => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            Scalar::F64 => f64::from_le_bytes(b),
-        })
-    }
+/// The fewest bytes a record of `el` can take: one per binary scalar (or list length), a
+/// number and a separator per ASCII property.
+fn min_record_bytes(el: &ElementDef, encoding: Encoding) -> usize {
+    let size = |s: &ScalarType| match s {
+        ScalarType::Char | ScalarType::UChar => 1,
+        ScalarType::Short | ScalarType::UShort => 2,
+        ScalarType::Int | ScalarType::UInt | ScalarType::Float => 4,
+        ScalarType::Double => 8,
+    };
+    let bytes = match encoding {
+        Encoding::Ascii => 2 * el.properties.len(),
+        _ => el
+            .properties
+            .values()
+            .map(|p| match &p.data_type {
+                PropertyType::Scalar(s) | PropertyType::List(s, _) => size(s),
+            })
+            .sum(),
+    };
+    bytes.max(1)
+}
 
-    fn list_len(&mut self, c: Scalar, el: &Element, index: usize) -> Result<usize, PlyError> {
-        let n = self.scalar(c, el, index)?;
-        if !(n >= 0.0 && n.fract() == 0.0 && n <= self.bytes.len() as f64) {
-            return Err(self.err(el, index, format!("bad list length {n}")));
-        }
-        Ok(n as usize)
-    }
-
-    fn read_record(
-        &mut self,
-        el: &Element,
-        index: usize,
-        values: &mut [f64],
-    ) -> Result<(), PlyError> {
-        for (k, p) in el.props.iter().enumerate() {
-            match p {
-                Property::Scalar(_, s) => values[k] = self.scalar(*s, el, index)?,
-                Property::List(c, it) => {
-                    let n = self.list_len(*c, el, index)?;
-                    for _ in 0..n {
-                        self.scalar(*it, el, index)?;
-                    }
-                }
+/// Reads one record of `el` (an ASCII record is one line); the error says what is wrong.
+fn read_record<E: PropertyAccess>(
+    parser: &Parser<E>,
+    body: &mut Cursor<&[u8]>,
+    encoding: Encoding,
+    el: &ElementDef,
+    line: &mut String,
+) -> Result<E, String> {
+    let ends = || "file ends inside the record".to_string();
+    let record = match encoding {
+        Encoding::Ascii => {
+            line.clear();
+            match body.read_line(line) {
+                Ok(0) => return Err(ends()),
+                Ok(_) => parser.read_ascii_element(line, el),
+                Err(e) => return Err(e.to_string()),
             }
         }
-        Ok(())
-    }
+        Encoding::BinaryLittleEndian => parser.read_little_endian_element(body, el),
+        Encoding::BinaryBigEndian => parser.read_big_endian_element(body, el),
+    };
+    record.map_err(|e| match e.kind() {
+        ErrorKind::UnexpectedEof => ends(),
+        _ => message(&e),
+    })
+}
 
-    fn skip_record(&mut self, el: &Element, index: usize) -> Result<(), PlyError> {
-        for p in &el.props {
-            match p {
-                Property::Scalar(_, s) => {
-                    self.scalar(*s, el, index)?;
-                }
-                Property::List(c, it) => {
-                    let n = self.list_len(*c, el, index)?;
-                    for _ in 0..n {
-                        self.scalar(*it, el, index)?;
-                    }
-                }
-            }
-        }
-        Ok(())
+/// A parser error on one line (its whitespace collapsed), without the line number the error
+/// variants carry, cut to a readable length: a message may quote the offending line.
+fn message(e: &ParseError) -> String {
+    const MAX_CHARS: usize = 240;
+    let text = e.to_string();
+    let text = match e.line() {
+        Some(n) => text
+            .strip_prefix(&format!("Line {n}: "))
+            .unwrap_or(&text)
+            .to_string(),
+        None => text,
+    };
+    let text = text.split_whitespace().collect::<Vec<_>>().join(" ");
+    match text.char_indices().nth(MAX_CHARS) {
+        Some((cut, _)) => format!("{}…", &text[..cut]),
+        None => text,
     }
 }
 
@@ -411,19 +324,36 @@ pub fn write_ply(
 
 /// The bytes [`write_ply`] writes (grey where `rgb` is `None`).
 pub fn ply_bytes(xyz: &[Point3<f64>], rgb: Option<&[[u8; 3]]>) -> Vec<u8> {
-    let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
-    let _ = writeln!(header, "element vertex {}", xyz.len());
-    header.push_str("property float x\nproperty float y\nproperty float z\n");
-    header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
-    header.push_str("end_header\n");
-    let mut bytes = header.into_bytes();
-    bytes.reserve(xyz.len() * 15);
+    let mut el = ElementDef::new("vertex".into());
+    el.count = xyz.len();
+    for (name, ty) in [
+        ("x", ScalarType::Float),
+        ("y", ScalarType::Float),
+        ("z", ScalarType::Float),
+        ("red", ScalarType::UChar),
+        ("green", ScalarType::UChar),
+        ("blue", ScalarType::UChar),
+    ] {
+        el.properties
+            .add(PropertyDef::new(name.into(), PropertyType::Scalar(ty)));
+    }
+    let mut header = Header::new();
+    header.encoding = Encoding::BinaryLittleEndian;
+    header.elements.add(el.clone());
+    let writer = Writer::<Vertex>::new();
+    let mut bytes = Vec::with_capacity(256 + 15 * xyz.len());
+    // Writing to a Vec cannot fail, and `Vertex` has every property the header names.
+    let infallible = "a PLY record of the properties it names, written to memory";
+    writer.write_header(&mut bytes, &header).expect(infallible);
     for (i, p) in xyz.iter().enumerate() {
-        for v in p.coords.iter() {
-            bytes.extend_from_slice(&(*v as f32).to_le_bytes());
-        }
         let c = rgb.and_then(|c| c.get(i)).copied().unwrap_or([128; 3]);
-        bytes.extend_from_slice(&c);
+        let v = Vertex {
+            xyz: [p.x, p.y, p.z],
+            rgb: c.map(f64::from),
+        };
+        writer
+            .write_little_endian_element(&mut bytes, &v, &el)
+            .expect(infallible);
     }
     bytes
 }
@@ -471,7 +401,7 @@ mod tests {
 
     #[test]
     fn bad_files_are_typed_errors() {
-        let cases: [(&[u8], &str); 7] = [
+        let cases: [(&[u8], &str); 10] = [
             (b"plx\nformat ascii 1.0\nend_header\n", "not a PLY file"),
             (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "end_header"),
             (b"ply\nformat ascii 2.0\nend_header\n", "unsupported format"),
@@ -485,11 +415,23 @@ mod tests {
             ),
             (
                 b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n",
+                "element `vertex` record 1: Expected element",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n",
                 "record 1: file ends",
             ),
             (
                 b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 nan 3\n",
-                "non-finite",
+                "record 0: Couldn't parse element line",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quad x\nend_header\n",
+                "header line 4: Couldn't parse line",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n3 0 1 2\n",
+                "no `vertex` element",
             ),
         ];
         for (bytes, want) in cases {
@@ -499,6 +441,47 @@ mod tests {
                 "{e} (wanted {want})"
             );
         }
+    }
+
+    #[test]
+    fn non_finite_binary_position_is_an_error() {
+        let mut b = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n\
+                      property float y\nproperty float z\nend_header\n"
+            .to_vec();
+        for v in [1.0f32, 2.0, 3.0, 4.0, f32::NAN, 6.0] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        let e = parse_ply(&b, p()).unwrap_err().to_string();
+        assert!(
+            e.contains("cloud.ply: element `vertex` record 1: non-finite"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn binary_list_past_the_end_names_the_element() {
+        let mut b = b"ply\nformat binary_little_endian 1.0\nelement face 1\n\
+                      property list uchar int vertex_indices\nelement vertex 1\nproperty float x\n\
+                      property float y\nproperty float z\nend_header\n"
+            .to_vec();
+        b.extend_from_slice(&[255, 1, 2]);
+        let e = parse_ply(&b, p()).unwrap_err().to_string();
+        assert!(e.contains("element `face` record 0: file ends"), "{e}");
+    }
+
+    #[test]
+    fn written_header_is_nerfstudio_layout() {
+        let b = ply_bytes(&[Point3::new(1.0, 2.0, 3.0)], Some(&[[4, 5, 6]]));
+        let header = "ply\nformat binary_little_endian 1.0\nelement vertex 1\n\
+                      property float x\nproperty float y\nproperty float z\n\
+                      property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n";
+        assert_eq!(&b[..header.len()], header.as_bytes());
+        let mut body = Vec::new();
+        for v in [1.0f32, 2.0, 3.0] {
+            body.extend_from_slice(&v.to_le_bytes());
+        }
+        body.extend_from_slice(&[4, 5, 6]);
+        assert_eq!(&b[header.len()..], body.as_slice());
     }
 
     proptest! {

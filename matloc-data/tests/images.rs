@@ -153,12 +153,17 @@ fn npy_depth_round_trip_and_numpy_layout() {
     let depth = Image::from_vec(3, 2, 1, vec![0.0f32, 1.5, 70_000.25, 12.0, 65.6, 0.001]).unwrap();
     write_depth_npy(&depth, &p).unwrap();
     let bytes = fs::read(&p).unwrap();
-    // Exactly what numpy.save writes for a (2, 3) float32 array.
+    // numpy.save's layout for a (2, 3) float32 array: version 1.0, the data aligned to 64
+    // bytes, a dict header (npyz writes the shape tuple as `(2, 3, )`, which numpy reads as
+    // `(2, 3)`).
     assert_eq!(&bytes[..8], b"\x93NUMPY\x01\x00");
     let header_len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
     assert_eq!((10 + header_len) % 64, 0);
     let header = std::str::from_utf8(&bytes[10..10 + header_len]).unwrap();
-    assert!(header.starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }"));
+    assert!(
+        header.starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3, ), }"),
+        "{header}"
+    );
     assert!(header.ends_with('\n'));
     assert_eq!(
         &bytes[10 + header_len..10 + header_len + 8],
