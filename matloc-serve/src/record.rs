@@ -39,6 +39,12 @@ pub fn localization_record(
                 let (q, t) = colmap_from_cam_from_world(&to_world(&h.coarse_cam_from_world));
                 ho.insert("coarse_qvec_wxyz".into(), json!(q));
                 ho.insert("coarse_tvec".into(), json!(t));
+                ho.remove("refined_cam_from_world");
+                if let Some(refined) = &h.refined_cam_from_world {
+                    let (q, t) = colmap_from_cam_from_world(&to_world(refined));
+                    ho.insert("refined_qvec_wxyz".into(), json!(q));
+                    ho.insert("refined_tvec".into(), json!(t));
+                }
             }
         }
     }
@@ -63,4 +69,72 @@ pub fn localization_record(
 /// The record of a query that failed before or during localization.
 pub fn error_record(name: &str, error: &str) -> Value {
     json!({"name": name, "error": error})
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matloc_pipeline::HypothesisReport;
+    use matloc_pipeline::methods::Method;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    fn pose(x: f64, yaw: f64) -> Pose {
+        Pose::from_parts(
+            Translation3::new(x, 2.0, 30.0),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+        )
+    }
+
+    /// A hypothesis's coarse and reached poses are written in the output world as COLMAP's
+    /// `qvec_wxyz` / `tvec`, and nothing of the library's own pose layout is left.
+    #[test]
+    fn hypothesis_poses_are_written_in_the_output_world() {
+        let (coarse, refined) = (pose(1.0, 0.2), pose(1.5, 0.25));
+        let report = |refined_cam_from_world| HypothesisReport {
+            group: 3,
+            score: 0.5,
+            block: 0,
+            coarse_cam_from_world: coarse,
+            matches: 40,
+            inliers: 20,
+            confidence: 0.9,
+            passes: 1,
+            accepted: false,
+            failure: None,
+            alignment: 0.0,
+            log10_nfa: Some(-3.0),
+            refined_cam_from_world,
+        };
+        let result = QueryResult {
+            name: "q".into(),
+            method: Method::Structure,
+            localized: false,
+            cam_from_world: None,
+            camera_center: None,
+            confidence: Some(0.0),
+            inliers: 20,
+            iterations: 2,
+            hypotheses: vec![report(Some(refined)), report(None)],
+            stage_seconds: Vec::new(),
+            total_seconds: 0.1,
+        };
+        let shift = Pose::from_parts(
+            Translation3::new(10.0, 0.0, 0.0),
+            UnitQuaternion::identity(),
+        );
+        let to_world = |p: &Pose| *p * shift.inverse();
+        let v = localization_record(&result, "original", &to_world, None).unwrap();
+        let hyps = v["hypotheses"].as_array().unwrap();
+        let (q, t) = colmap_from_cam_from_world(&to_world(&refined));
+        assert_eq!(hyps[0]["refined_qvec_wxyz"], json!(q));
+        assert_eq!(hyps[0]["refined_tvec"], json!(t));
+        let (q, t) = colmap_from_cam_from_world(&to_world(&coarse));
+        assert_eq!(hyps[0]["coarse_qvec_wxyz"], json!(q));
+        assert_eq!(hyps[0]["coarse_tvec"], json!(t));
+        for h in hyps {
+            assert!(h.get("refined_cam_from_world").is_none());
+            assert!(h.get("coarse_cam_from_world").is_none());
+        }
+        assert!(hyps[1].get("refined_tvec").is_none());
+    }
 }

@@ -13,7 +13,7 @@
 
 use matloc_core::Image;
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
-use matloc_core::pose::{Pose, camera_center, viewing_direction};
+use matloc_core::pose::{Pose, cam_from_world_from_colmap, camera_center, viewing_direction};
 use matloc_data::{Split, read_dataset};
 use matloc_keypoints::GrayImage;
 use matloc_pipeline::LoadedMap;
@@ -81,13 +81,15 @@ fn main() {
         let mut seen: Vec<Pose> = Vec::new();
         for h in r["hypotheses"].as_array().into_iter().flatten() {
             let inliers = h["inliers"].as_u64().unwrap_or(0) as usize;
-            let Some(pose) = h.get("refined_cam_from_world") else {
+            let (Some(q), Some(t)) = (h.get("refined_qvec_wxyz"), h.get("refined_tvec")) else {
                 continue;
             };
             if inliers < min_inliers {
                 continue;
             }
-            let pose: Pose = serde_json::from_value(pose.clone()).expect("pose");
+            let q: [f64; 4] = serde_json::from_value(q.clone()).expect("qvec");
+            let t: [f64; 3] = serde_json::from_value(t.clone()).expect("tvec");
+            let pose = cam_from_world_from_colmap(q, t).expect("pose");
             if seen
                 .iter()
                 .any(|p| (camera_center(p) - camera_center(&pose)).norm() < 0.05)
