@@ -154,7 +154,7 @@ fn is_fast_corner(img: &GrayImage, x: usize, y: usize, t: f32) -> bool {
 }
 
 /// Harris response (k = 0.04) over a 7×7 window of central-difference gradients.
-fn harris(img: &GrayImage, x: usize, y: usize) -> f32 {
+pub(crate) fn harris(img: &GrayImage, x: usize, y: usize) -> f32 {
     let (mut a, mut b, mut c) = (0.0f32, 0.0f32, 0.0f32);
     for yy in y - 3..=y + 3 {
         for xx in x - 3..=x + 3 {
@@ -168,18 +168,14 @@ fn harris(img: &GrayImage, x: usize, y: usize) -> f32 {
     a * b - c * c - 0.04 * (a + b) * (a + b)
 }
 
-/// Largest sub-pixel offset: under half a pixel, so that the refined position still rounds
-/// to the pixel it refines (`gradient::describe_gradients_at` finds it again that way).
-const MAX_SUBPIXEL: f32 = 0.49;
-
 /// Offset of the peak of the parabola through `(-1, a)`, `(0, b)`, `(1, c)`, within
-/// `±MAX_SUBPIXEL`; 0 where the three values do not make a maximum at the centre.
+/// `[-0.5, 0.5]`; 0 where the three values do not make a maximum at the centre.
 fn parabola_peak(a: f32, b: f32, c: f32) -> f32 {
     let curvature = a - 2.0 * b + c;
     if curvature >= 0.0 || !curvature.is_finite() {
         return 0.0;
     }
-    (0.5 * (a - c) / curvature).clamp(-MAX_SUBPIXEL, MAX_SUBPIXEL)
+    (0.5 * (a - c) / curvature).clamp(-0.5, 0.5)
 }
 
 /// Sub-pixel offset of a corner at `(x, y)` from its Harris response around it.

@@ -16,7 +16,8 @@ use std::f32::consts::{SQRT_2, TAU};
 use rayon::prelude::*;
 
 use crate::detect::{
-    Descriptor, Keypoint, KeypointConfig, binary_describer, detect_with, level_scale, pyramid,
+    Descriptor, Keypoint, KeypointConfig, binary_describer, detect_with, harris, level_scale,
+    pyramid,
 };
 use crate::gray::GrayImage;
 
@@ -73,17 +74,50 @@ pub fn describe_gradients_at(
             let l = usize::from(k.level);
             match (pyramid.get(l), fields.get(l).and_then(Option::as_ref)) {
                 (Some(level), Some(field)) => {
-                    let (sx, sy) = level_scale(image, level);
-                    // The level pixel the detector described at: the keypoint's position
-                    // less its sub-pixel offset (under half a pixel), rounded.
-                    let x = (k.x / sx - 0.5).round();
-                    let y = (k.y / sy - 0.5).round();
-                    field.describe(x, y, k.angle)
+                    let (x, y) = detected_pixel(image, level, k);
+                    field.describe(x as f32, y as f32, k.angle)
                 }
                 _ => [0; 128],
             }
         })
         .collect()
+}
+
+/// The pixel of `level` the detector found keypoint `k` at: its position less the sub-pixel
+/// offset (at most half a pixel), rounded; where the offset was a full half pixel both
+/// neighbours are candidates, and the one whose Harris response is the keypoint's wins.
+fn detected_pixel(image: &GrayImage, level: &GrayImage, k: &Keypoint) -> (usize, usize) {
+    let (sx, sy) = level_scale(image, level);
+    let candidates = |v: f32, side: usize| -> Vec<usize> {
+        let inside = |c: f32| (c.max(0.0) as usize).min(side.saturating_sub(1));
+        if (v - v.floor() - 0.5).abs() < 1e-3 {
+            vec![inside(v.floor()), inside(v.ceil())]
+        } else {
+            vec![inside(v.round())]
+        }
+    };
+    let xs = candidates(k.x / sx - 0.5, level.width());
+    let ys = candidates(k.y / sy - 0.5, level.height());
+    if xs.len() == 1 && ys.len() == 1 {
+        return (xs[0], ys[0]);
+    }
+    let mut best = (xs[0], ys[0]);
+    let mut best_gap = f32::INFINITY;
+    for &x in &xs {
+        for &y in &ys {
+            // The Harris window reaches four pixels out.
+            let inside = x >= 4 && y >= 4 && x + 4 < level.width() && y + 4 < level.height();
+            let gap = if inside {
+                (harris(level, x, y) - k.response).abs()
+            } else {
+                f32::INFINITY
+            };
+            if gap < best_gap {
+                (best, best_gap) = ((x, y), gap);
+            }
+        }
+    }
+    best
 }
 
 /// Detects keypoints as [`crate::detect_and_describe`] does and describes each both ways:
@@ -264,7 +298,8 @@ mod tests {
     }
 
     /// Described after detection, on the keypoints a binary detection found, the gradient
-    /// descriptors are those a gradient detection gives, with and without the 2× upsampling.
+    /// descriptors are those a gradient detection gives, with and without the 2× upsampling,
+    /// keypoints a half pixel off their detected pixel included.
     #[test]
     fn describing_detected_keypoints_again_gives_the_detections_descriptors() {
         let img = texture(160, 120, 5);
@@ -276,6 +311,18 @@ mod tests {
             };
             let (keypoints, _) = crate::detect_and_describe(&img, &config);
             let (again, expected) = detect_and_describe_gradients(&img, &config);
+            let pyramid = pyramid(&img, &config);
+            let half = keypoints
+                .iter()
+                .filter(|k| {
+                    let (sx, sy) = level_scale(&img, &pyramid[usize::from(k.level)]);
+                    let v = [k.x / sx - 0.5, k.y / sy - 0.5];
+                    v.iter().any(|v| (v - v.floor() - 0.5).abs() < 1e-3)
+                })
+                .count();
+            // Keypoints whose sub-pixel offset is a full half pixel, where the detected pixel
+            // is told by its Harris response: both cases are covered.
+            assert!(half > 0 && half < keypoints.len(), "{half}");
             assert!(keypoints.len() > 50, "{}", keypoints.len());
             assert_eq!(keypoints, again);
             let described = describe_gradients_at(&img, &config, &keypoints);

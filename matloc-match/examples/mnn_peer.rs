@@ -7,7 +7,6 @@ use matloc_match::kernel::{nn_tables_faer, nn_tables_tiled};
 use matloc_match::{MnnConfig, NnTables, mutual_from_tables};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use std::io::Write;
 use std::time::Instant;
 
 fn unit_rows(rng: &mut ChaCha8Rng, n: usize, d: usize) -> Vec<f32> {
@@ -19,28 +18,24 @@ fn unit_rows(rng: &mut ChaCha8Rng, n: usize, d: usize) -> Vec<f32> {
     v
 }
 
-/// NumPy `.npy` version 1.0, little-endian f32, C order.
+/// `data` as a `rows × cols` little-endian f32 `.npy` array, C order.
 fn write_npy(
     path: &std::path::Path,
     data: &[f32],
     rows: usize,
     cols: usize,
 ) -> std::io::Result<()> {
-    let mut header =
-        format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({rows}, {cols}), }}");
-    // Magic (6) + version (2) + length (2) + header must be a multiple of 64, ending in '\n'.
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
-    f.write_all(b"\x93NUMPY\x01\x00")?;
-    f.write_all(&(header.len() as u16).to_le_bytes())?;
-    f.write_all(header.as_bytes())?;
-    for v in data {
-        f.write_all(&v.to_le_bytes())?;
-    }
-    f.flush()
+    use npyz::WriterBuilder;
+    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+    // Little-endian whatever the host.
+    let dtype = npyz::DType::new_scalar("<f4".parse().expect("a valid type string"));
+    let mut writer = npyz::WriteOptions::<f32>::new()
+        .dtype(dtype)
+        .shape(&[rows as u64, cols as u64])
+        .writer(file)
+        .begin_nd()?;
+    writer.extend(data.iter().copied())?;
+    writer.finish()
 }
 
 fn median_ms(reps: usize, mut f: impl FnMut() -> NnTables) -> (f64, NnTables) {

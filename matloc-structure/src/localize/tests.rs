@@ -408,6 +408,20 @@ fn the_inlier_hull_measures_how_much_of_the_image_a_consensus_covers() {
     );
 }
 
+/// `image` mirrored top to bottom.
+fn mirrored_top_to_bottom(image: &Image<f32>) -> Image<f32> {
+    let (w, h, c) = image.shape();
+    let mut mirrored = Image::new(w, h, c);
+    for r in 0..h {
+        for col in 0..w {
+            mirrored
+                .pixel_mut(col, r)
+                .copy_from_slice(image.pixel(col, h - 1 - r));
+        }
+    }
+    mirrored
+}
+
 /// Under the true pose the map's points agree with the query; with the query mirrored top to
 /// bottom, they agree only by chance.
 #[test]
@@ -416,15 +430,7 @@ fn the_map_points_agree_with_a_view_and_not_with_its_mirror_image() {
     let camera = camera();
     let gt = pose_above(4.3, -5.1, 0.12);
     let query = render(&camera, &gt, ground);
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let mut mirrored = Image::new(w, h, 3);
-    for r in 0..h {
-        for c in 0..w {
-            mirrored
-                .pixel_mut(c, r)
-                .copy_from_slice(query.pixel(c, h - 1 - r));
-        }
-    }
+    let mirrored = mirrored_top_to_bottom(&query);
     let images: Vec<usize> = (0..map.images().len()).collect();
     let planes = |img: &Image<f32>| QueryPlanes::new(&GrayImage::from_image(img));
     let straight = agreement(&map, &planes(&query), &camera, &gt, &images).unwrap();
@@ -705,16 +711,7 @@ fn a_weak_consensus_gives_way_to_a_stronger_one_elsewhere() {
 fn a_mirrored_view_solved_under_the_ground_is_refused() {
     let (map, camera) = (plane_structure(), camera());
     let gt = pose_above(4.3, -5.1, 0.12);
-    let view = render(&camera, &gt, ground);
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let mut mirrored = Image::new(w, h, 3);
-    for r in 0..h {
-        for c in 0..w {
-            mirrored
-                .pixel_mut(c, r)
-                .copy_from_slice(view.pixel(c, h - 1 - r));
-        }
-    }
+    let mirrored = mirrored_top_to_bottom(&render(&camera, &gt, ground));
     let renderer = GroundRenderer { texture: ground };
     let run = |min_front_side: f64| {
         let options = StructureOptions {
