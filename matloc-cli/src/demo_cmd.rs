@@ -12,7 +12,7 @@ use matloc_pipeline::methods::Method;
 
 use crate::eval_cmd::{self, EvalArgs};
 use crate::method_options::MethodOptionsArgs;
-use crate::pose_formats::WorldArg;
+use crate::pose_args::WorldArg;
 use crate::split_args::SplitArgs;
 use crate::{map_cmd, synth_cmd};
 

@@ -8,10 +8,15 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use matloc_core::Pose;
+use matloc_data::query::{Query, dataset_queries};
 use matloc_pipeline::LoadedMap;
 use matloc_pipeline::config::CalibrationQueries;
 use matloc_pipeline::eval::tables::RELIABILITY_BINS;
 use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use matloc_pipeline::query::poses::jsonl_record;
+use matloc_pipeline::query::{
+    Localized, OutputWorld, PoseFormat, QueryRecord, WorldKind, write_poses,
+};
 use matloc_pipeline::{
     MethodSummary, QueryOutcome, RecallThreshold, accuracy_table, reliability_table,
     summarize_with, timing_table,
@@ -19,11 +24,8 @@ use matloc_pipeline::{
 
 use crate::method_options::MethodOptionsArgs;
 use crate::plot;
-use crate::pose_formats::{
-    Localized, OutputWorld, PoseFormat, QueryRecord, WorldArg, jsonl_record, write_poses,
-};
+use crate::pose_args::{FormatArg, WorldArg};
 use crate::progress;
-use crate::queries::{Query, dataset_queries};
 use crate::split_args::{self, SplitArgs};
 
 /// Arguments of `matloc eval`.
@@ -55,7 +57,7 @@ pub struct EvalArgs {
     /// Also write each method's poses in this format to OUT/poses/ (`results.jsonl` always
     /// has them).
     #[arg(long, value_enum)]
-    pub format: Option<PoseFormat>,
+    pub format: Option<FormatArg>,
     /// World of the written poses: `data`, or `original` (undoes the dataset's nerfstudio
     /// `applied_transform`: the COLMAP world).
     #[arg(long, value_enum, default_value = "data")]
@@ -97,8 +99,8 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
     let split = args.split.for_map(map.dir.manifest().split.as_ref())?;
     split_args::apply(split.as_ref(), &mut dataset)
         .with_context(|| format!("splitting dataset {}", args.data.display()))?;
-    let world = OutputWorld::new(args.world, dataset.metadata.applied_transform)?;
-    let queries = dataset_queries(&dataset, &map, args.queries)?;
+    let world = OutputWorld::new(args.world.into(), dataset.metadata.applied_transform)?;
+    let queries = dataset_queries(&dataset, map.camera().as_ref(), args.queries)?;
     if queries.is_empty() {
         bail!("{} has no test views to localize", args.data.display());
     }
@@ -119,7 +121,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
         let mut records = Vec::new();
         let mut outcomes = Vec::new();
         for (index, q) in subset {
-            let r = localize_with(&map, method, &q.name, &q.image, &q.camera, &options)
+            let r = localize_with(&map, &method, &q.name, &q.image, &q.camera, &options)
                 .with_context(|| format!("{method} on {}", q.name))?;
             if let Some(gt) = q.cam_from_world {
                 outcomes.push(r.outcome(gt));
@@ -162,7 +164,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<PathBuf> {
         }
     }
     write(&args.out.join("results.jsonl"), lines.as_bytes())?;
-    if let Some(format) = args.format {
+    if let Some(format) = args.format.map(PoseFormat::from) {
         let dir = args.out.join("poses");
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         for r in &runs {
@@ -482,12 +484,12 @@ fn report(
         s,
         "Per-query results: `results.jsonl`; summaries: `summary.json`."
     )?;
-    if let Some(format) = args.format {
+    if let Some(format) = args.format.map(PoseFormat::from) {
         writeln!(
             s,
             "Poses of each method ({}, {} world): `poses/`.",
             format.name(),
-            args.world.name()
+            WorldKind::from(args.world).name()
         )?;
     }
     Ok(s)

@@ -8,15 +8,18 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::{MultiProgress, ProgressBar};
+use matloc_pipeline::build::jobs::{
+    SlurmOptions, read_plan, shell_line, shell_quote, write_slurm_scripts,
+};
 use matloc_pipeline::build::{
-    BuildEvent, MapConfig, build_map, plan_map, run_block_job, run_finish_job,
+    BuildEvent, JobCommands, MapConfig, build_map, plan_map, run_block_job, run_finish_job,
 };
 use matloc_pipeline::config::CalibrationQueries;
 use matloc_pipeline::map::MapError;
 use matloc_pipeline::map::check::{content_problems, structure_summary};
 use matloc_pipeline::map::layout::{
-    CONFIDENCE_FILE, CalibrationRecord, PLAN_FILE, PLAN_FORMAT, PlanRecord, SelectionRecord,
-    block_stages, required_stages, selection_file,
+    CONFIDENCE_FILE, CalibrationRecord, PLAN_FILE, SelectionRecord, block_stages, required_stages,
+    selection_file,
 };
 use matloc_pipeline::{MapDir, VirtualViewsRecord};
 
@@ -250,41 +253,9 @@ fn build_config(a: &BuildArgs) -> Result<MapConfig> {
     Ok(config)
 }
 
-/// Reads a map config file.
+/// Reads a map config file ([`MapConfig::from_path`]).
 pub fn read_config(path: &Path) -> Result<MapConfig> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let value: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("parsing map config {}", path.display()))?;
-    if !value.is_object() {
-        anyhow::bail!(
-            "map config {}: the top level must be a JSON object of sections, got {}",
-            path.display(),
-            match value {
-                serde_json::Value::Array(_) => "an array",
-                serde_json::Value::String(_) => "a string",
-                serde_json::Value::Number(_) => "a number",
-                serde_json::Value::Bool(_) => "a boolean",
-                _ => "null",
-            }
-        );
-    }
-    // Keys left out keep the map's defaults, also inside a section.
-    let value = MapConfig::overlay_on_default(value);
-    // The path of the offending key (`nerf.steps`) goes into the message, which serde alone
-    // gives only as a line and column.
-    let config: MapConfig = serde_path_to_error::deserialize(value).map_err(|e| {
-        anyhow::anyhow!(
-            "map config {}: field `{}`: {}",
-            path.display(),
-            e.path(),
-            e.inner()
-        )
-    })?;
-    config
-        .validate()
-        .map_err(|e| anyhow::anyhow!("map config {}: {e}", path.display()))?;
-    Ok(config)
+    Ok(MapConfig::from_path(path)?)
 }
 
 /// Runs `step`, which creates or resumes the map in `out`. When `out` held no map before and
@@ -367,43 +338,21 @@ pub fn build(
 /// `matloc map plan`: the plan step, then the job list in MAP/plan.json.
 fn plan(data: &Path, out: &Path, config: &MapConfig, split: &SplitArgs, quiet: bool) -> Result<()> {
     let mut bars = StageBars::new(quiet);
+    let program = std::env::current_exe()
+        .map(|p| std::fs::canonicalize(&p).unwrap_or(p))
+        .unwrap_or_else(|_| PathBuf::from("matloc"));
+    let jobs = JobCommands {
+        program: program.clone(),
+        data: data.to_path_buf(),
+    };
     let planned = leaving_nothing_if_refused(out, || {
         let dataset = open_for_build(data, out, config, split)?;
-        plan_map(&dataset, out, config, &mut |e| bars.event(e))
+        plan_map(&dataset, out, config, &jobs, &mut |e| bars.event(e))
             .with_context(|| format!("planning map {}", out.display()))
     })?;
     bars.finish()?;
-    let mut map = planned.map;
-    let absolute = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
-    let program = std::env::current_exe()
-        .map(|p| absolute(&p))
-        .unwrap_or_else(|_| PathBuf::from("matloc"));
-    let root = absolute(out);
-    let command = |tail: &[String]| -> Vec<String> {
-        let mut v = vec![
-            program.display().to_string(),
-            "map".to_string(),
-            tail[0].clone(),
-            root.display().to_string(),
-        ];
-        v.extend_from_slice(&tail[1..]);
-        v
-    };
-    let blocks: Vec<usize> = (0..planned.partition.blocks.len()).collect();
-    let record = PlanRecord {
-        format: PLAN_FORMAT.to_string(),
-        version: 1,
-        data: absolute(data).display().to_string(),
-        block_commands: blocks
-            .iter()
-            .map(|b| command(&["block".into(), "--block".into(), b.to_string()]))
-            .collect(),
-        finish_command: command(&["finish".into()]),
-        blocks,
-    };
-    map.write_json(PLAN_FILE, &record)
-        .and_then(|()| map.save())
-        .with_context(|| format!("writing the plan of map {}", out.display()))?;
+    let record = read_plan(&planned.map)?;
+    let root = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
     outln!(
         "map {} planned: {} blocks; run each block job, then the finish job:",
         out.display(),
@@ -418,31 +367,6 @@ fn plan(data: &Path, out: &Path, config: &MapConfig, split: &SplitArgs, quiet: b
         shell_quote(&program.display().to_string()),
         shell_quote(&root.display().to_string())
     )
-}
-
-/// The plan of a planned map (checksum verified).
-fn read_plan(map: &MapDir) -> Result<PlanRecord> {
-    let plan: PlanRecord = map.read_json(PLAN_FILE).with_context(|| {
-        format!(
-            "map {} has no job plan; run `matloc map plan` first",
-            map.root().display()
-        )
-    })?;
-    anyhow::ensure!(
-        plan.format == PLAN_FORMAT && plan.version == 1,
-        "{}: format {:?} version {}, expected {PLAN_FORMAT:?} version 1",
-        map.root().join(PLAN_FILE).display(),
-        plan.format,
-        plan.version
-    );
-    anyhow::ensure!(
-        plan.block_commands.len() == plan.blocks.len(),
-        "{}: `block_commands` has {} entries for {} blocks",
-        map.root().join(PLAN_FILE).display(),
-        plan.block_commands.len(),
-        plan.blocks.len()
-    );
-    Ok(plan)
 }
 
 /// The dataset of a block or finish job: `data`, else the plan's, else the one the manifest
@@ -483,133 +407,23 @@ fn block_record_bytes(map: &MapDir, b: usize) -> u64 {
         .map_or(0, |r| r.files.values().map(|f| f.bytes).sum())
 }
 
-/// `s` quoted for a POSIX shell (unchanged when it needs no quoting).
-fn shell_quote(s: &str) -> String {
-    let plain = !s.is_empty()
-        && s.chars()
-            .all(|c| c.is_ascii_alphanumeric() || "/._-+=:,@%".contains(c));
-    if plain {
-        s.to_string()
-    } else {
-        format!("'{}'", s.replace('\'', r"'\''"))
-    }
-}
-
-/// A command line for a POSIX shell.
-fn shell_line(argv: &[String]) -> String {
-    argv.iter()
-        .map(|a| shell_quote(a))
-        .collect::<Vec<_>>()
-        .join(" ")
-}
-
-/// The Slurm scripts of a planned map: (file name, content).
-fn slurm_scripts(plan: &PlanRecord, a: &SlurmArgs, out: &Path) -> Result<Vec<(String, String)>> {
-    anyhow::ensure!(!plan.blocks.is_empty(), "the plan has no blocks");
-    anyhow::ensure!(a.cpus_per_task >= 1, "--cpus-per-task must be at least 1");
-    let finish_cpus = a.finish_cpus.unwrap_or(a.cpus_per_task);
-    anyhow::ensure!(finish_cpus >= 1, "--finish-cpus must be at least 1");
-    let logs = out.join("logs");
-    let program = match &a.matloc {
-        Some(p) => p.display().to_string(),
-        None => plan.finish_command[0].clone(),
-    };
-    let with_program = |argv: &[String]| -> String {
-        let mut v = argv.to_vec();
-        v[0] = program.clone();
-        shell_line(&v)
-    };
-    let header = |name: &str, log: &str, cpus: u32| {
-        let mut h = format!(
-            "#!/bin/bash\n#SBATCH --job-name={name}\n#SBATCH --cpus-per-task={cpus}\n\
-             #SBATCH --mem={}\n#SBATCH --time={}\n#SBATCH --output={}\n\
-             #SBATCH --open-mode=append\n",
-            a.mem,
-            a.time,
-            shell_quote(&logs.join(log).display().to_string())
-        );
-        if let Some(p) = &a.partition {
-            h.push_str(&format!("#SBATCH --partition={p}\n"));
-        }
-        if let Some(acc) = &a.account {
-            h.push_str(&format!("#SBATCH --account={acc}\n"));
-        }
-        h
-    };
-    let n = plan.blocks.len();
-    let array = match a.max_running {
-        Some(k) => format!("0-{}%{k}", n - 1),
-        None => format!("0-{}", n - 1),
-    };
-    // The block id of each array index, and each block's command with `$B` for the id.
-    let ids: Vec<String> = plan.blocks.iter().map(|b| b.to_string()).collect();
-    let mut block_cmd = plan.block_commands[0].clone();
-    anyhow::ensure!(
-        block_cmd.last() == Some(&ids[0]) && block_cmd.len() >= 2,
-        "plan.json: the first block command does not end with its block id {}",
-        ids[0]
-    );
-    block_cmd.pop();
-    let block_line = format!("{} \"$B\"", with_program(&block_cmd));
-    let blocks = format!(
-        "{}#SBATCH --array={array}\n\
-         # One block per array task: SLURM_ARRAY_TASK_ID indexes BLOCKS. A block whose job was\n\
-         # killed resumes when its index is submitted again (sbatch --array=K blocks.sbatch).\n\
-         set -euo pipefail\n\
-         BLOCKS=({})\n\
-         B=\"${{BLOCKS[$SLURM_ARRAY_TASK_ID]}}\"\n\
-         export RAYON_NUM_THREADS=\"${{SLURM_CPUS_PER_TASK:-1}}\"\n\
-         exec {block_line}\n",
-        header("matloc-blocks", "block-%a.log", a.cpus_per_task),
-        ids.join(" ")
-    );
-    let finish = format!(
-        "{}# Submitted with --dependency=afterok:<array job>: runs once every block succeeded.\n\
-         set -euo pipefail\n\
-         export RAYON_NUM_THREADS=\"${{SLURM_CPUS_PER_TASK:-1}}\"\n\
-         exec {}\n",
-        header("matloc-finish", "finish.log", finish_cpus),
-        with_program(&plan.finish_command)
-    );
-    let submit = format!(
-        "#!/bin/bash\n\
-         # Submits the block array, then the finish job depending on all of it; prints both ids.\n\
-         set -euo pipefail\n\
-         cd {}\n\
-         mkdir -p logs\n\
-         array=$(sbatch --parsable \"$@\" blocks.sbatch)\n\
-         array=${{array%%;*}}\n\
-         finish=$(sbatch --parsable \"$@\" --dependency=afterok:\"$array\" finish.sbatch)\n\
-         finish=${{finish%%;*}}\n\
-         echo \"$array $finish\"\n",
-        shell_quote(&out.display().to_string())
-    );
-    Ok(vec![
-        ("blocks.sbatch".into(), blocks),
-        ("finish.sbatch".into(), finish),
-        ("submit.sh".into(), submit),
-    ])
-}
-
 /// `matloc map slurm`: writes the scripts and prints how to submit them.
 fn slurm(a: &SlurmArgs) -> Result<()> {
     let map = MapDir::open_manifest(&a.map)
         .with_context(|| format!("opening map {}", a.map.display()))?;
     let plan = read_plan(&map)?;
+    let options = SlurmOptions {
+        partition: a.partition.clone(),
+        cpus_per_task: a.cpus_per_task,
+        finish_cpus: a.finish_cpus,
+        mem: a.mem.clone(),
+        time: a.time.clone(),
+        account: a.account.clone(),
+        max_running: a.max_running,
+        program: a.matloc.clone(),
+    };
     let out = a.out.clone().unwrap_or_else(|| a.map.join("slurm"));
-    std::fs::create_dir_all(out.join("logs"))
-        .with_context(|| format!("creating {}", out.join("logs").display()))?;
-    let out = std::fs::canonicalize(&out).unwrap_or(out);
-    for (name, text) in slurm_scripts(&plan, a, &out)? {
-        let path = out.join(&name);
-        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755))
-                .with_context(|| format!("making {} executable", path.display()))?;
-        }
-    }
+    let out = write_slurm_scripts(&plan, &options, &out)?;
     let dir = shell_quote(&out.display().to_string());
     outln!(
         "wrote {dir}/blocks.sbatch ({} blocks), {dir}/finish.sbatch, {dir}/submit.sh; submit with\n  \
@@ -939,28 +753,6 @@ fn report_problems(problems: &[MapError]) {
 mod tests {
     use std::path::Path;
 
-    use super::{PlanRecord, SlurmArgs, shell_line, slurm_scripts};
-
-    #[test]
-    fn config_errors_name_the_key_and_refuse_a_non_object() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("c.json");
-        std::fs::write(&path, r#"{"nerf": {"steps": "many"}}"#).unwrap();
-        let e = format!("{:#}", super::read_config(&path).unwrap_err());
-        assert!(
-            e.contains("field `nerf.steps`") && e.contains("c.json"),
-            "{e}"
-        );
-        std::fs::write(&path, "[]").unwrap();
-        let e = format!("{:#}", super::read_config(&path).unwrap_err());
-        assert!(
-            e.contains("must be a JSON object") && e.contains("an array"),
-            "{e}"
-        );
-        std::fs::write(&path, r#"{"nerf": {"steps": 7}}"#).unwrap();
-        assert_eq!(super::read_config(&path).unwrap().nerf.steps, 7);
-    }
-
     #[test]
     fn map_info_shows_the_virtual_views_with_their_rejections() {
         let v = matloc_pipeline::VirtualViewsRecord {
@@ -984,70 +776,6 @@ mod tests {
              ground below, 0 clearance, 2 axis misses ground, 1 target outside block, 0 axis \
              not covered, 0 low coverage), 0 unlabelled; survey 29.9 m up, cells 2.99 m, 2.0 s"
         );
-    }
-
-    #[test]
-    fn shell_words_are_quoted_only_when_needed() {
-        let argv = ["/opt/m atloc", "map", "it's", "--block", "3"].map(String::from);
-        assert_eq!(shell_line(&argv), r"'/opt/m atloc' map 'it'\''s' --block 3");
-        assert_eq!(shell_line(&[String::new()]), "''");
-    }
-
-    #[test]
-    fn slurm_scripts_run_an_array_over_the_blocks_and_a_finish_job() {
-        let cmd = |tail: &[&str]| -> Vec<String> {
-            ["/bin/matloc", "map"]
-                .iter()
-                .chain(tail)
-                .map(|s| s.to_string())
-                .collect()
-        };
-        let plan = PlanRecord {
-            format: "matloc-plan".into(),
-            version: 1,
-            data: "/d".into(),
-            blocks: vec![0, 1, 2],
-            block_commands: (0..3)
-                .map(|b| cmd(&["block", "/maps/m 1", "--block", &b.to_string()]))
-                .collect(),
-            finish_command: cmd(&["finish", "/maps/m 1"]),
-        };
-        let args = SlurmArgs {
-            map: "/maps/m 1".into(),
-            partition: Some("cpu".into()),
-            cpus_per_task: 8,
-            finish_cpus: Some(32),
-            mem: "16G".into(),
-            time: "04:00:00".into(),
-            account: None,
-            max_running: Some(2),
-            matloc: None,
-            out: None,
-        };
-        let scripts = slurm_scripts(&plan, &args, Path::new("/maps/m 1/slurm")).unwrap();
-        let get = |name: &str| &scripts.iter().find(|(n, _)| n == name).unwrap().1;
-        let blocks = get("blocks.sbatch");
-        for line in [
-            "#SBATCH --array=0-2%2",
-            "#SBATCH --cpus-per-task=8",
-            "#SBATCH --mem=16G",
-            "#SBATCH --time=04:00:00",
-            "#SBATCH --partition=cpu",
-            "#SBATCH --output='/maps/m 1/slurm/logs/block-%a.log'",
-            "BLOCKS=(0 1 2)",
-            "exec /bin/matloc map block '/maps/m 1' --block \"$B\"",
-        ] {
-            assert!(blocks.contains(line), "{line} not in\n{blocks}");
-        }
-        assert!(!blocks.contains("--account"), "{blocks}");
-        let finish = get("finish.sbatch");
-        assert!(finish.contains("exec /bin/matloc map finish '/maps/m 1'"));
-        assert!(finish.contains("#SBATCH --cpus-per-task=32"), "{finish}");
-        assert!(get("submit.sh").contains("--dependency=afterok:\"$array\" finish.sbatch"));
-        // A plan whose commands do not end with the block id is refused.
-        let mut bad = plan.clone();
-        bad.block_commands[0].push("--quiet".into());
-        assert!(slurm_scripts(&bad, &args, Path::new("/s")).is_err());
     }
 
     /// The shipped quality config is a partial file: what it names changes, the rest stays

@@ -19,22 +19,10 @@ pub fn write(args: std::fmt::Arguments<'_>) -> anyhow::Result<()> {
     }
 }
 
-/// `err` and its causes joined by `: ` (as `{:#}` prints them), leaving out a cause whose text
-/// the message before it already ends with: many error types print their source in their own
-/// message as well as returning it as `source()`, which would repeat it.
+/// `err` and its causes joined by `: ` (as `{:#}` prints them), a cause whose text the message
+/// before it already ends with left out ([`matloc_pipeline::query::error_chain`]).
 pub fn error_chain(err: &anyhow::Error) -> String {
-    let mut out = String::new();
-    for cause in err.chain() {
-        let text = cause.to_string();
-        if !out.is_empty() && out.ends_with(&text) {
-            continue;
-        }
-        if !out.is_empty() {
-            out.push_str(": ");
-        }
-        out.push_str(&text);
-    }
-    out
+    matloc_pipeline::query::error_chain(err.as_ref())
 }
 
 /// Whether `err` (anywhere in its chain) is a closed stdout.

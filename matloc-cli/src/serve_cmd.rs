@@ -55,7 +55,7 @@ pub fn run(args: &ServeArgs) -> Result<()> {
         queue: args.queue.unwrap_or(2 * workers),
         max_body_bytes: args.max_body_bytes,
         timeout: Duration::from_secs_f64(args.timeout_s),
-        method: args.method,
+        method: std::sync::Arc::new(args.method),
         ..defaults
     };
     if config.workers == 0 {

@@ -238,6 +238,62 @@ impl Image<f32> {
     }
 }
 
+/// Area-averaging resize of a multi-channel image to `width × height` (each output pixel is the
+/// coverage-weighted mean of the source pixels under its footprint; upsampling repeats pixels).
+pub fn resize_area(img: &Image<f32>, width: usize, height: usize) -> Image<f32> {
+    let (sw, sh, c) = (img.width(), img.height(), img.channels());
+    let mut out = Image::<f32>::new(width, height, c);
+    if sw == 0 || sh == 0 || width == 0 || height == 0 {
+        return out;
+    }
+    // Per output coordinate: the source indices and weights covering its footprint.
+    let taps = |src: usize, dst: usize| -> Vec<Vec<(usize, f32)>> {
+        let scale = src as f64 / dst as f64;
+        (0..dst)
+            .map(|o| {
+                let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
+                let mut t = Vec::new();
+                let mut i = a.floor() as usize;
+                while (i as f64) < b && i < src {
+                    let w = (b.min(i as f64 + 1.0) - a.max(i as f64)).max(0.0);
+                    if w > 0.0 {
+                        t.push((i, w as f32));
+                    }
+                    i += 1;
+                }
+                let total: f32 = t.iter().map(|x| x.1).sum();
+                t.iter_mut()
+                    .for_each(|x| x.1 /= total.max(f32::MIN_POSITIVE));
+                t
+            })
+            .collect()
+    };
+    let (tx, ty) = (taps(sw, width), taps(sh, height));
+    // Horizontal pass into an sh × width buffer, then vertical.
+    let src = img.data();
+    let mut tmp = vec![0.0f32; sh * width * c];
+    for y in 0..sh {
+        for (x, t) in tx.iter().enumerate() {
+            for &(i, w) in t {
+                for k in 0..c {
+                    tmp[(y * width + x) * c + k] += w * src[(y * sw + i) * c + k];
+                }
+            }
+        }
+    }
+    let dst = out.data_mut();
+    for (y, t) in ty.iter().enumerate() {
+        for &(j, w) in t {
+            for x in 0..width {
+                for k in 0..c {
+                    dst[(y * width + x) * c + k] += w * tmp[(j * width + x) * c + k];
+                }
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -291,5 +347,26 @@ mod tests {
         assert!((v[0] - 0.5).abs() < 1e-6);
         img.sample_bilinear(10.0, 0.5, &mut v);
         assert_eq!(v[0], 1.0);
+    }
+    #[test]
+    fn area_resize_preserves_means_and_integer_boxes() {
+        let mut img = Image::<f32>::new(160, 120, 3);
+        for y in 0..120 {
+            for x in 0..160 {
+                let p = img.pixel_mut(x, y);
+                p.copy_from_slice(&[x as f32 / 160.0, y as f32 / 120.0, 0.5]);
+            }
+        }
+        let small = resize_area(&img, 64, 48);
+        for k in 0..3 {
+            let m = |im: &Image<f32>| {
+                im.data().iter().skip(k).step_by(3).sum::<f32>() / (im.width() * im.height()) as f32
+            };
+            assert!((m(&img) - m(&small)).abs() < 1e-4);
+        }
+        let half = resize_area(&img, 80, 60);
+        let d = img.data();
+        let expect = (d[0] + d[3] + d[160 * 3] + d[161 * 3]) / 4.0;
+        assert!((half.data()[0] - expect).abs() < 1e-6);
     }
 }

@@ -212,6 +212,13 @@ pub fn camera_center(cam_from_world: &Pose) -> Point3<f64> {
     cam_from_world.inverse_transform_point(&Point3::origin())
 }
 
+/// A camera pose re-expressed in another world frame: `cam_from_other` for `cam_from_world`
+/// and the transform `world_from_other` between the frames (points map as
+/// `x_world = world_from_other · x_other`).
+pub fn cam_from_other_world(cam_from_world: &Pose, world_from_other: &Pose) -> Pose {
+    cam_from_world * world_from_other
+}
+
 /// Unit viewing direction (the camera's +z axis) in world coordinates.
 pub fn viewing_direction(cam_from_world: &Pose) -> Vector3<f64> {
     cam_from_world.inverse_transform_vector(&Vector3::z())
@@ -335,6 +342,18 @@ mod tests {
             let gl = opengl_from_cam_from_world(&p);
             let c = camera_center(&p);
             prop_assert!((Vector3::new(gl[(0,3)], gl[(1,3)], gl[(2,3)]) - c.coords).norm() < 1e-9);
+        }
+
+        #[test]
+        fn another_world_sees_the_same_camera(p in pose_strategy(), t in pose_strategy(),
+                                              x in prop::array::uniform3(-50.0..50.0f64)) {
+            // `t` is world_from_other: a point's camera coordinates do not depend on the
+            // frame its world coordinates are written in.
+            let other = cam_from_other_world(&p, &t);
+            let x_other = Point3::from(Vector3::from(x));
+            prop_assert!((other * x_other - p * (t * x_other)).norm() < 1e-8);
+            prop_assert!((t * camera_center(&other) - camera_center(&p)).norm() < 1e-8);
+            prop_assert!(close(&cam_from_other_world(&other, &t.inverse()), &p));
         }
 
         #[test]

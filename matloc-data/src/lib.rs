@@ -10,6 +10,8 @@
 //!   metadata `.pt` files), undoing its normalisation; [`torch_pt`]: the `.pt` files themselves.
 //! - [`split`]: [`split::SplitRule`], a test split for data that has none.
 //! - [`images`]: load RGB images and depth maps, rescaling intrinsics to the loaded size.
+//! - [`query`]: query input: intrinsics as requests and hloc query lists state them, query
+//!   images decoded and brought to the map's resolution, query lists and paths.
 //! - [`summary`]: [`read_dataset`] for any supported layout, and a validation summary.
 //! - [`error`]: [`DataError`], what any reader can fail with.
 
@@ -21,6 +23,7 @@ pub mod meganerf;
 pub mod nerfstudio;
 pub mod ply;
 pub mod points;
+pub mod query;
 pub mod split;
 pub mod summary;
 pub mod torch_pt;

@@ -719,7 +719,10 @@ pub fn cam_from_world_from_original(
     applied: &[[f64; 4]; 3],
     cam_from_original: &Pose,
 ) -> Result<Pose, PoseError> {
-    Ok(cam_from_original * applied_transform_pose(applied)?.inverse())
+    Ok(matloc_core::pose::cam_from_other_world(
+        cam_from_original,
+        &applied_transform_pose(applied)?.inverse(),
+    ))
 }
 
 /// Writes `dataset` as nerfstudio `transforms.json`, atomically.

@@ -36,13 +36,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // The map was built at its own resolution: bring the query to it.
     let (image, camera) = match map.camera() {
         Some(c) if (c.width, c.height) != (w, h) => (
-            matloc_place::resize_area(&image, c.width as usize, c.height as usize),
+            matloc_core::image::resize_area(&image, c.width as usize, c.height as usize),
             camera.rescaled(c.width, c.height)?,
         ),
         _ => (image, camera),
     };
     let options = MethodOptions::default();
-    let result = localize_with(&map, Method::DEFAULT, &args[2], &image, &camera, &options)?;
+    let result = localize_with(&map, &Method::DEFAULT, &args[2], &image, &camera, &options)?;
     let confidence = result.confidence.unwrap_or(f64::NAN);
     match result.cam_from_world {
         Some(pose) => {

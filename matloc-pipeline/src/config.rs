@@ -6,6 +6,8 @@ use matloc_partition::{PoseAwareConfig, SampleConfig};
 use matloc_place::{GroupConfig, PlaceModel, TrainConfig};
 use matloc_select::GreedySearch;
 use matloc_surface::{SunlightConfig, SurfaceConfig, VirtualViewsConfig};
+use std::path::{Path, PathBuf};
+
 use serde::{Deserialize, Serialize};
 
 use crate::gt::{PerturbKind, Perturbation};
@@ -153,6 +155,112 @@ impl MapConfig {
         let mut full = MapConfig::documented_default();
         overlay_json(&mut full, partial);
         full
+    }
+}
+
+/// Why a map config file cannot be used; each names the file (`origin`).
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigFileError {
+    /// The file cannot be read.
+    #[error("reading {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The text is not JSON.
+    #[error("parsing map config {origin}: {source}")]
+    Json {
+        /// The file (or what the value came from).
+        origin: String,
+        /// The parser's error, with line and column.
+        source: serde_json::Error,
+    },
+    /// The top level is not an object of sections.
+    #[error("map config {origin}: the top level must be a JSON object of sections, got {found}")]
+    NotObject {
+        /// The file.
+        origin: String,
+        /// What it is instead (`an array`, `a string`, ...).
+        found: &'static str,
+    },
+    /// A key has the wrong type or an unknown name.
+    #[error("map config {origin}: field `{field}`: {message}")]
+    Field {
+        /// The file.
+        origin: String,
+        /// The dotted path of the key (`nerf.steps`).
+        field: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// Values no stage can run with ([`MapConfig::validate`]).
+    #[error("map config {origin}: {message}")]
+    Invalid {
+        /// The file.
+        origin: String,
+        /// Every offending field.
+        message: String,
+    },
+}
+
+impl MapConfig {
+    /// Reads a map config file: a JSON object with only the keys a user changes, laid over
+    /// the map's defaults ([`MapConfig::overlay_on_default`]), then validated. Errors name
+    /// the file and the key.
+    pub fn from_path(path: &Path) -> Result<MapConfig, ConfigFileError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigFileError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let origin = path.display().to_string();
+        let value: serde_json::Value =
+            serde_json::from_str(&text).map_err(|source| ConfigFileError::Json {
+                origin: origin.clone(),
+                source,
+            })?;
+        MapConfig::from_partial(value, &origin)
+    }
+
+    /// A partial config (the keys a user changes) laid over the map's defaults and validated;
+    /// `origin` names where it came from in errors.
+    pub fn from_partial(
+        partial: serde_json::Value,
+        origin: &str,
+    ) -> Result<MapConfig, ConfigFileError> {
+        use serde_json::Value;
+        let found = match &partial {
+            Value::Object(_) => None,
+            Value::Array(_) => Some("an array"),
+            Value::String(_) => Some("a string"),
+            Value::Number(_) => Some("a number"),
+            Value::Bool(_) => Some("a boolean"),
+            Value::Null => Some("null"),
+        };
+        if let Some(found) = found {
+            return Err(ConfigFileError::NotObject {
+                origin: origin.to_string(),
+                found,
+            });
+        }
+        // The path of the offending key (`nerf.steps`) goes into the message, which serde
+        // alone gives only as a line and column.
+        let config: MapConfig = serde_path_to_error::deserialize(MapConfig::overlay_on_default(
+            partial,
+        ))
+        .map_err(|e| ConfigFileError::Field {
+            origin: origin.to_string(),
+            field: e.path().to_string(),
+            message: e.inner().to_string(),
+        })?;
+        config
+            .validate()
+            .map_err(|message| ConfigFileError::Invalid {
+                origin: origin.to_string(),
+                message,
+            })?;
+        Ok(config)
     }
 }
 
@@ -761,5 +869,25 @@ mod tests {
         let e = bad.validate().unwrap_err();
         assert!(e.contains("`virtual.pitch_deg` = [10.0, 95.0]"), "{e}");
         assert!(e.contains("`virtual.min_coverage` = 2"), "{e}");
+    }
+
+    #[test]
+    fn config_errors_name_the_key_and_refuse_a_non_object() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.json");
+        std::fs::write(&path, r#"{"nerf": {"steps": "many"}}"#).unwrap();
+        let e = MapConfig::from_path(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("field `nerf.steps`") && e.contains("c.json"),
+            "{e}"
+        );
+        std::fs::write(&path, "[]").unwrap();
+        let e = MapConfig::from_path(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("must be a JSON object") && e.contains("an array"),
+            "{e}"
+        );
+        std::fs::write(&path, r#"{"nerf": {"steps": 7}}"#).unwrap();
+        assert_eq!(MapConfig::from_path(&path).unwrap().nerf.steps, 7);
     }
 }

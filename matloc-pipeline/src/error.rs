@@ -95,6 +95,9 @@ pub enum PipelineError {
         /// The field dim.
         dim: usize,
     },
+    /// The job list or its scripts.
+    #[error(transparent)]
+    Jobs(#[from] crate::build::jobs::JobError),
     /// An I/O error outside the map's own files.
     #[error("{path}: {source}")]
     Io {

@@ -13,6 +13,9 @@
 //! - [`baselines`], [`methods`]: rendered-RGB + keypoints, iNeRF and curriculum iNeRF from the
 //!   same coarse poses and map as MatLoc, and one entry point for every method, which refuses
 //!   a pose outside the map's [`volume`].
+//! - [`query`]: the query path of `matloc localize` and `matloc serve`: a batch of queries
+//!   localized in order, the JSON record of one query, pose files (JSON lines, hloc, TUM,
+//!   COLMAP, nerfstudio).
 //! - [`eval`]: the paper's Tables 1–4 and diagnostics.
 //!
 //! The command-line tool (`matloc`) only parses arguments, draws progress and plots, and calls
@@ -28,6 +31,7 @@ pub mod gt;
 pub mod localizer;
 pub mod map;
 pub mod methods;
+pub mod query;
 pub mod volume;
 
 pub use config::MapConfig;

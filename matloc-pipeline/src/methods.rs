@@ -4,9 +4,14 @@
 //! images ([`matloc_structure`]), the default. The NeRF baselines start from MatLoc's best
 //! place hypothesis and render the block that serves it, as in the paper's comparison;
 //! `structure` and MatLoc try the same top-k place hypotheses in order.
+//!
+//! A method is a [`LocalizationMethod`]: the built-in ones are the variants of [`Method`], any
+//! other is registered by name in a [`MethodRegistry`]; [`localize_with`] runs either with the
+//! checks every method shares.
 
 use std::fmt;
 use std::str::FromStr;
+use std::sync::Arc;
 use std::time::Instant;
 
 use matloc_core::pose::camera_center;
@@ -87,13 +92,143 @@ impl FromStr for Method {
     }
 }
 
+/// A localization method: a query image with its camera → a pose, or a refusal, on a loaded
+/// map. The built-in methods are the variants of [`Method`]; another method implements this
+/// trait and is registered by name in a [`MethodRegistry`], and every entry point
+/// ([`localize_with`], [`crate::query::localize_batch`], the server) takes any of them.
+pub trait LocalizationMethod: Send + Sync {
+    /// The name it is registered and asked for by (`structure`, `matloc`, ...).
+    fn name(&self) -> &str;
+
+    /// Localizes `image` (taken with `camera`, of the image's size) on `map`. The checks every
+    /// method shares (plausible intrinsics, a pose inside the mapped volume) are
+    /// [`localize_with`]'s; call that rather than this.
+    fn localize(
+        &self,
+        map: &LoadedMap,
+        name: &str,
+        image: &Image<f32>,
+        camera: &Camera,
+        options: &MethodOptions,
+    ) -> Result<QueryResult, PipelineError>;
+}
+
+impl fmt::Debug for dyn LocalizationMethod {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "LocalizationMethod({})", self.name())
+    }
+}
+
+impl LocalizationMethod for Method {
+    fn name(&self) -> &str {
+        Method::name(*self)
+    }
+
+    fn localize(
+        &self,
+        map: &LoadedMap,
+        name: &str,
+        image: &Image<f32>,
+        camera: &Camera,
+        options: &MethodOptions,
+    ) -> Result<QueryResult, PipelineError> {
+        match self {
+            Method::Structure => localize_structure(map, name, image, camera, &options.structure),
+            Method::Matloc => localize_matloc(map, name, image, camera, options),
+            Method::RgbKeypoints => localize_nerf_baseline(
+                map,
+                NerfBaseline::RgbKeypoints,
+                name,
+                image,
+                camera,
+                options,
+            ),
+            Method::Inerf => {
+                localize_nerf_baseline(map, NerfBaseline::Inerf, name, image, camera, options)
+            }
+            Method::CurriculumInerf => localize_nerf_baseline(
+                map,
+                NerfBaseline::CurriculumInerf,
+                name,
+                image,
+                camera,
+                options,
+            ),
+        }
+    }
+}
+
+/// Why a method cannot be registered or found.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum MethodRegistryError {
+    /// No method has the name.
+    #[error("unknown method {name:?} (expected one of {known})")]
+    Unknown {
+        /// The name asked for.
+        name: String,
+        /// The registered names, comma-separated.
+        known: String,
+    },
+    /// A method of that name is registered already.
+    #[error("a method named {0:?} is registered already")]
+    Duplicate(String),
+}
+
+/// Localization methods by name: the built-in ones ([`MethodRegistry::builtin`]) and any a
+/// caller registers.
+#[derive(Clone, Debug)]
+pub struct MethodRegistry {
+    methods: Vec<Arc<dyn LocalizationMethod>>,
+}
+
+impl MethodRegistry {
+    /// The built-in methods ([`Method::ALL`], the default first).
+    pub fn builtin() -> Self {
+        MethodRegistry {
+            methods: Method::ALL
+                .into_iter()
+                .map(|m| Arc::new(m) as Arc<dyn LocalizationMethod>)
+                .collect(),
+        }
+    }
+
+    /// Adds `method` under its name; a name taken already is refused.
+    pub fn register(
+        &mut self,
+        method: Arc<dyn LocalizationMethod>,
+    ) -> Result<(), MethodRegistryError> {
+        if self.methods.iter().any(|m| m.name() == method.name()) {
+            return Err(MethodRegistryError::Duplicate(method.name().to_string()));
+        }
+        self.methods.push(method);
+        Ok(())
+    }
+
+    /// The method registered as `name`.
+    pub fn get(&self, name: &str) -> Result<Arc<dyn LocalizationMethod>, MethodRegistryError> {
+        self.methods
+            .iter()
+            .find(|m| m.name() == name)
+            .cloned()
+            .ok_or_else(|| MethodRegistryError::Unknown {
+                name: name.to_string(),
+                known: self.names().join(", "),
+            })
+    }
+
+    /// The registered names, in registration order.
+    pub fn names(&self) -> Vec<&str> {
+        self.methods.iter().map(|m| m.name()).collect()
+    }
+}
+
 /// The result of localizing one query: what `matloc localize` prints as a JSON line.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct QueryResult {
     /// Query name (image path).
     pub name: String,
-    /// Method.
-    pub method: Method,
+    /// The method's registered name ([`LocalizationMethod::name`]).
+    pub method: String,
     /// Whether a pose is returned (`false` = "not localized").
     pub localized: bool,
     /// World → camera pose (OpenCV camera axes), when localized.
@@ -167,14 +302,14 @@ impl Default for MatlocOptions {
 /// failure, and the reason is logged.
 pub fn localize_with(
     map: &LoadedMap,
-    method: Method,
+    method: &dyn LocalizationMethod,
     name: &str,
     image: &Image<f32>,
     camera: &Camera,
     options: &MethodOptions,
 ) -> Result<QueryResult, PipelineError> {
     camera.check_plausible()?;
-    let mut result = localize_method(map, method, name, image, camera, options)?;
+    let mut result = method.localize(map, name, image, camera, options)?;
     if let Some(pose) = result.cam_from_world
         && let Some(reason) = MappedVolume::of_map(&map.partition, map.structure.as_ref())
             .and_then(|v| v.refusal(&pose))
@@ -198,21 +333,34 @@ pub fn localize_with(
     Ok(result)
 }
 
-/// [`localize_with`] before the shared checks.
-fn localize_method(
+/// The paper's NeRF baselines.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum NerfBaseline {
+    RgbKeypoints,
+    Inerf,
+    CurriculumInerf,
+}
+
+impl NerfBaseline {
+    fn method(self) -> Method {
+        match self {
+            NerfBaseline::RgbKeypoints => Method::RgbKeypoints,
+            NerfBaseline::Inerf => Method::Inerf,
+            NerfBaseline::CurriculumInerf => Method::CurriculumInerf,
+        }
+    }
+}
+
+/// A NeRF baseline from MatLoc's best place hypothesis, rendering the block that serves it.
+fn localize_nerf_baseline(
     map: &LoadedMap,
-    method: Method,
+    baseline: NerfBaseline,
     name: &str,
     image: &Image<f32>,
     camera: &Camera,
     options: &MethodOptions,
 ) -> Result<QueryResult, PipelineError> {
-    if method == Method::Structure {
-        return localize_structure(map, name, image, camera, &options.structure);
-    }
-    if method == Method::Matloc {
-        return localize_matloc(map, name, image, camera, options);
-    }
+    let method = baseline.method();
     let start = Instant::now();
     let (image, camera) = query_at_working_size(image, camera, map.options().max_side);
     let (image, camera) = (image.as_ref(), &camera);
@@ -225,8 +373,8 @@ fn localize_method(
         .nerf(block)
         .ok_or(PipelineError::Internal("hypothesis of a missing block"))?;
     let mut rng = ChaCha8Rng::seed_from_u64(map.config.localize.seed);
-    let mut out = match method {
-        Method::RgbKeypoints => rgb_keypoints(
+    let mut out = match baseline {
+        NerfBaseline::RgbKeypoints => rgb_keypoints(
             model,
             camera,
             image,
@@ -234,7 +382,7 @@ fn localize_method(
             &options.keypoints,
             &mut rng,
         )?,
-        Method::Inerf => inerf(
+        NerfBaseline::Inerf => inerf(
             model,
             camera,
             image,
@@ -242,7 +390,7 @@ fn localize_method(
             &options.inerf,
             &mut rng,
         )?,
-        Method::CurriculumInerf => {
+        NerfBaseline::CurriculumInerf => {
             let o = InerfOptions {
                 iterations: InerfOptions::curriculum().iterations,
                 curriculum: InerfOptions::curriculum().curriculum,
@@ -250,15 +398,12 @@ fn localize_method(
             };
             inerf(model, camera, image, &hyp.cam_from_world, &o, &mut rng)?
         }
-        Method::Matloc | Method::Structure => {
-            return Err(PipelineError::Internal("handled above"));
-        }
     };
     // rgb-keypoints refuses a pose no training image looks like, as the structure method does
     // (its wrong poses on `small` looked 42° and 61° away from every training view;
     // docs/DECISIONS.md). Maps without the structure stage keep every pose.
     let mut failure = out.failure.take();
-    if method == Method::RgbKeypoints
+    if baseline == NerfBaseline::RgbKeypoints
         && let (Some(pose), Some(structure)) = (out.cam_from_world, map.structure.as_ref())
         && structure
             .images_looking_like(&pose, options.structure.max_view_angle_deg)
@@ -271,7 +416,7 @@ fn localize_method(
     let mut stage_seconds = vec![("place".to_string(), place_s)];
     stage_seconds.extend(out.stage_seconds);
     // rgb-keypoints: 1 − NFA of its consensus, as the structure method's; iNeRF: none.
-    let confidence = (method == Method::RgbKeypoints).then(|| {
+    let confidence = (baseline == NerfBaseline::RgbKeypoints).then(|| {
         structure_confidence(
             out.log10_nfa,
             out.inliers,
@@ -280,7 +425,7 @@ fn localize_method(
     });
     Ok(QueryResult {
         name: name.to_string(),
-        method,
+        method: method.name().to_string(),
         localized: out.cam_from_world.is_some(),
         camera_center: out
             .cam_from_world
@@ -343,7 +488,7 @@ fn localize_matloc(
     let passes = loc.hypotheses.iter().map(|h| h.passes as u32).sum::<u32>();
     let mut result = QueryResult {
         name: name.to_string(),
-        method: Method::Matloc,
+        method: Method::Matloc.name().to_string(),
         localized: loc.cam_from_world.is_some(),
         camera_center: None,
         cam_from_world: loc.cam_from_world,
@@ -555,7 +700,7 @@ fn localize_structure(
     stage_seconds.extend(r.stage_seconds);
     Ok(QueryResult {
         name: name.to_string(),
-        method: Method::Structure,
+        method: Method::Structure.name().to_string(),
         localized: r.cam_from_world.is_some(),
         camera_center: r
             .cam_from_world

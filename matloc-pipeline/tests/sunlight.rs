@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use matloc_data::{Dataset, read_dataset};
 use matloc_pipeline::MapConfig;
-use matloc_pipeline::build::plan_map;
 use matloc_pipeline::build::sunlight::SunlightRecord;
+use matloc_pipeline::build::{JobCommands, plan_map};
 use matloc_pipeline::map::layout::SUNLIGHT_FILE;
 use matloc_synth::{SynthConfig, SynthOutput, synthesize_with};
 use nalgebra::Vector3;
@@ -29,6 +29,14 @@ fn tiny(name: &str, depth: bool) -> (Dataset, PathBuf) {
     (read_dataset(&dir.join("data")).unwrap(), dir.join("map"))
 }
 
+/// The jobs of a plan (the commands are written, not run).
+fn jobs() -> JobCommands {
+    JobCommands {
+        program: PathBuf::from("matloc"),
+        data: PathBuf::from("data"),
+    }
+}
+
 fn lifting() -> MapConfig {
     let mut config = MapConfig::default();
     config.sunlight.enabled = true;
@@ -42,7 +50,7 @@ fn the_sun_is_estimated_when_the_data_does_not_give_it() {
     let (mut dataset, map) = tiny("sunlight_estimated", true);
     let truth = Vector3::from(dataset.metadata.sun_direction.take().expect("synth sun"));
     let t = std::time::Instant::now();
-    let planned = plan_map(&dataset, &map, &lifting(), &mut |_| {}).unwrap();
+    let planned = plan_map(&dataset, &map, &lifting(), &jobs(), &mut |_| {}).unwrap();
     let record: SunlightRecord = planned.map.read_json(SUNLIGHT_FILE).unwrap();
     let off = Vector3::from(record.sun_direction)
         .angle(&truth)
@@ -71,6 +79,7 @@ fn the_sun_is_estimated_when_the_data_does_not_give_it() {
         &dataset,
         &map.with_extension("flipped"),
         &flipped,
+        &jobs(),
         &mut |_| {},
     )
     .err()
@@ -87,7 +96,7 @@ fn the_sun_is_estimated_when_the_data_does_not_give_it() {
 fn a_surface_without_depth_files_is_refused() {
     let (dataset, map) = tiny("sunlight_no_depth", false);
     assert!(dataset.metadata.sun_direction.is_some());
-    let e = plan_map(&dataset, &map, &lifting(), &mut |_| {})
+    let e = plan_map(&dataset, &map, &lifting(), &jobs(), &mut |_| {})
         .err()
         .expect("refused")
         .to_string();

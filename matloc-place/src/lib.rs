@@ -17,7 +17,7 @@ pub mod groups;
 pub mod model;
 pub mod predictor;
 
-pub use augment::{AugmentConfig, augment, resize_area};
+pub use augment::{AugmentConfig, augment};
 pub use error::PlaceError;
 pub use groups::{GroupConfig, PoseGroup, PoseGroups, median_viewing_distance};
 pub use model::{ArcFaceConfig, NetConfig, arcface_loss, regression_loss};

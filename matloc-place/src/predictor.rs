@@ -17,12 +17,13 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::augment::{AugmentConfig, augment, resize_area};
+use crate::augment::{AugmentConfig, augment};
 use crate::error::PlaceError;
 use crate::groups::{PoseGroups, check_poses};
 use crate::model::{
     ArcFaceConfig, ArcFaceNet, NetConfig, RegressionNet, arcface_loss, regression_loss,
 };
+use matloc_core::image::resize_area;
 
 /// Format version of the model's JSON file.
 pub const PLACE_MODEL_VERSION: u32 = 1;

@@ -4,22 +4,14 @@
 //! graceful shutdown.
 //!
 //! - [`server`]: routes, admission, parsing, shutdown ([`ServeConfig`], [`run`],
-//!   [`ServerHandle`]).
-//! - [`camera`]: query intrinsics from a COLMAP model name + parameters, nerfstudio keys or a
-//!   matloc camera; unsupported models are rejected by name (shared with the CLI's query
-//!   lists).
-//! - [`query`]: decoding query images from bytes and bringing them to the map's resolution
-//!   (shared with the CLI).
-//! - [`record`]: the JSON record of one query (shared with `matloc localize --format jsonl`).
+//!   [`ServerHandle`]). A query's intrinsics, image and record are the library's query path
+//!   ([`matloc_data::query`], [`matloc_pipeline::query`]), the same as `matloc localize`'s.
 //! - [`metrics`]: counters, gauges and the latency histogram in Prometheus text.
 //!
 //! The request is `multipart/form-data` with parts `image` (PNG or JPEG bytes), `camera`
 //! (JSON) and optionally `name`; binary parts avoid base64's third more bytes and its decoding.
 
-pub mod camera;
 pub mod metrics;
-pub mod query;
-pub mod record;
 pub mod server;
 
 pub use server::{ServeConfig, ServeError, ServerHandle, Service, router, run, serve};

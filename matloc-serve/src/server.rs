@@ -31,16 +31,18 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use matloc_core::Camera;
-use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use matloc_pipeline::methods::{LocalizationMethod, Method, MethodOptions, localize_with};
 use matloc_pipeline::{LoadedMap, PipelineError};
 use serde_json::{Value, json};
 use tokio::net::TcpListener;
 use tokio::sync::{Semaphore, oneshot};
 
-use crate::camera::{CameraSpecError, check_plausible, parse_camera_json};
 use crate::metrics::{Metrics, Outcome};
-use crate::query::{DecodeLimits, decode_rgb, fit_to_image, image_dimensions, to_map_resolution};
-use crate::record::localization_record;
+use matloc_data::query::camera::{CameraSpecError, check_plausible, parse_camera_json};
+use matloc_data::query::image::{
+    DecodeLimits, decode_rgb, fit_to_image, image_dimensions, to_map_resolution,
+};
+use matloc_pipeline::query::localization_record;
 
 /// Server settings.
 #[derive(Clone, Debug)]
@@ -58,8 +60,9 @@ pub struct ServeConfig {
     pub timeout: Duration,
     /// Limits on the decoded query image.
     pub decode: DecodeLimits,
-    /// The localizer every request runs.
-    pub method: Method,
+    /// The method every request runs (a built-in [`Method`] or any other
+    /// [`LocalizationMethod`]).
+    pub method: Arc<dyn LocalizationMethod>,
 }
 
 impl Default for ServeConfig {
@@ -74,7 +77,7 @@ impl Default for ServeConfig {
             max_body_bytes: 16 << 20,
             timeout: Duration::from_secs(30),
             decode: DecodeLimits::default(),
-            method: Method::DEFAULT,
+            method: Arc::new(Method::DEFAULT),
         }
     }
 }
@@ -742,7 +745,7 @@ fn localize_parts(
     let t = Instant::now();
     let result = localize_with(
         &s.map,
-        s.config.method,
+        s.config.method.as_ref(),
         &parts.name,
         &image,
         &camera,

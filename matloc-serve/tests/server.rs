@@ -12,9 +12,9 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use matloc_core::pose::cam_from_world_from_colmap;
+use matloc_data::query::to_map_resolution;
 use matloc_pipeline::LoadedMap;
 use matloc_pipeline::methods::{MethodOptions, localize_with};
-use matloc_serve::query::to_map_resolution;
 use matloc_serve::{ServeConfig, ServerHandle};
 use serde_json::Value;
 
@@ -40,18 +40,18 @@ fn json(text: &str) -> Value {
 /// The record `localize_with` gives for the view at `path` (as `matloc localize` runs it).
 fn expected(map: &LoadedMap, path: &std::path::Path, camera: &str) -> Value {
     let image = matloc_data::images::load_rgb(path).unwrap();
-    let camera = matloc_serve::camera::parse_camera_json(camera).unwrap();
+    let camera = matloc_data::query::parse_camera_json(camera).unwrap();
     let (image, camera) = to_map_resolution(image, camera, map.camera().as_ref(), "q").unwrap();
     let r = localize_with(
         map,
-        config().method,
+        config().method.as_ref(),
         "q",
         &image,
         &camera,
         &MethodOptions::default(),
     )
     .unwrap();
-    matloc_serve::record::localization_record(&r, "data", &|p| *p, None).unwrap()
+    matloc_pipeline::query::localization_record(&r, "data", &|p| *p, None).unwrap()
 }
 
 fn assert_same_answer(got: &Value, want: &Value) {

@@ -99,7 +99,7 @@ fn main() {
                     translation_error_m(&r.cam_from_world, &f.cam_from_world)
                 }),
             );
-            let r = localize_with(&map, Method::Matloc, "q", &image, &camera, &options)
+            let r = localize_with(&map, &Method::Matloc, "q", &image, &camera, &options)
                 .expect("localize");
             match r.cam_from_world {
                 None => refused += 1,

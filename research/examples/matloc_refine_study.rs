@@ -157,7 +157,8 @@ fn main() {
     for f in dataset.split(Split::Test) {
         let (image, camera) = matloc_data::images::load_frame_image(&dataset, f, 1).expect("image");
         let name = f.image_path.display().to_string();
-        let r = localize_with(&map, Method::Matloc, &name, &image, &camera, &options).expect("loc");
+        let r =
+            localize_with(&map, &Method::Matloc, &name, &image, &camera, &options).expect("loc");
         let err = |p: &matloc_core::Pose| {
             (
                 translation_error_m(p, &f.cam_from_world),

@@ -59,7 +59,7 @@ fn main() {
                 &mut secs_without,
             ),
         ] {
-            let r = localize_with(&map, Method::Structure, "q", &image, &f.camera, options)
+            let r = localize_with(&map, &Method::Structure, "q", &image, &f.camera, options)
                 .expect("localize");
             *secs += r.total_seconds;
             match r.cam_from_world {

@@ -27,7 +27,9 @@ use matloc_pipeline::build::{BuildEvent, MapConfig, build_map};
 use matloc_pipeline::config::{RenderScore, RenderSelectConfig};
 use matloc_pipeline::eval::diagnostics::RenderedQueryEncoder;
 use matloc_pipeline::eval::table3::{Table3Config, evaluate, markdown, paired_markdown};
-use matloc_pipeline::methods::{Method, MethodOptions, localize_with};
+use matloc_pipeline::methods::{
+    LocalizationMethod, Method, MethodOptions, QueryResult, localize_with,
+};
 use matloc_pipeline::{LocalizeOptions, Localizer, LocalizerBlock, PipelineError};
 use matloc_place::{PlaceHypothesis, PlacePredictor};
 use matloc_pnp::LoRansacPnp;
@@ -216,7 +218,7 @@ fn matloc_localizes_test_views_with_the_learned_encoder() {
     for f in &tests {
         let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
         // The full pipeline: place → encoder → selected features → MNN → PnP → refinement.
-        let r = localize_with(&map, Method::Matloc, "q", &image, &camera, &options).unwrap();
+        let r = localize_with(&map, &Method::Matloc, "q", &image, &camera, &options).unwrap();
         if let Some(p) = r.cam_from_world {
             errors.push(translation_error_m(&p, &f.cam_from_world));
             ok += usize::from(within(&p, &f.cam_from_world, 1.0, 5.0));
@@ -285,7 +287,7 @@ fn calibration_on_rendered_views_keeps_matloc_s_floors() {
     let (mut ok, mut wrong) = (0, 0);
     for f in b.dataset.split(Split::Test) {
         let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
-        let r = localize_with(&map, Method::Matloc, "q", &image, &camera, &options).unwrap();
+        let r = localize_with(&map, &Method::Matloc, "q", &image, &camera, &options).unwrap();
         if let Some(p) = r.cam_from_world {
             ok += usize::from(within(&p, &f.cam_from_world, 1.0, 5.0));
             wrong += usize::from(!within(&p, &f.cam_from_world, 5.0, 10.0));
@@ -319,7 +321,7 @@ fn the_default_method_localizes_test_views_to_centimetres() {
     let (mut ok, mut wrong, mut errors) = (0, 0, Vec::new());
     for f in &tests {
         let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
-        let r = localize_with(&map, Method::DEFAULT, "q", &image, &camera, &options).unwrap();
+        let r = localize_with(&map, &Method::DEFAULT, "q", &image, &camera, &options).unwrap();
         match r.cam_from_world {
             Some(p) => {
                 errors.push(translation_error_m(&p, &f.cam_from_world));
@@ -363,7 +365,7 @@ fn matloc_s_keypoint_finish_brings_its_poses_to_centimetres() {
         let (mut ok, mut wrong, mut errors) = (0, 0, Vec::new());
         for f in &tests {
             let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
-            let r = localize_with(&map, Method::Matloc, "q", &image, &camera, options).unwrap();
+            let r = localize_with(&map, &Method::Matloc, "q", &image, &camera, options).unwrap();
             if let Some(p) = r.cam_from_world {
                 // The answer names the hypothesis whose feature pose started it.
                 assert_eq!(r.hypotheses.iter().filter(|h| h.accepted).count(), 1);
@@ -501,7 +503,7 @@ fn rgb_keypoints_renders_again_at_the_pose_it_solved() {
     let (mut two, mut wrong_two) = (Vec::new(), 0);
     for f in b.dataset.split(Split::Test) {
         let (image, camera) = matloc_data::images::load_frame_image(&b.dataset, f, 1).unwrap();
-        let r = localize_with(&map, Method::RgbKeypoints, "q", &image, &camera, &options).unwrap();
+        let r = localize_with(&map, &Method::RgbKeypoints, "q", &image, &camera, &options).unwrap();
         match r.cam_from_world {
             Some(p) => {
                 assert_eq!(r.iterations, 2);
@@ -586,7 +588,7 @@ fn inerf_and_curriculum_inerf_lower_the_photometric_error_from_a_near_start() {
     for method in [Method::Inerf, Method::CurriculumInerf] {
         let r = localize_with(
             &map,
-            method,
+            &method,
             "q",
             &image,
             &camera,
@@ -641,12 +643,128 @@ fn an_unrelated_image_is_refused() {
     grey.data_mut().fill(0.5);
     let options = MethodOptions::default();
     for method in [Method::Matloc, Method::Structure] {
-        let r = localize_with(&map, method, "grey", &grey, &camera, &options).unwrap();
+        let r = localize_with(&map, &method, "grey", &grey, &camera, &options).unwrap();
         assert!(
             r.cam_from_world.is_none(),
             "{method}: a grey image was localized"
         );
     }
+}
+
+/// A method that answers every query with one fixed pose (a plug-in, not a built-in).
+struct FixedAnswer {
+    pose: Pose,
+    calls: std::sync::atomic::AtomicUsize,
+}
+
+impl LocalizationMethod for FixedAnswer {
+    fn name(&self) -> &str {
+        "fixed-answer"
+    }
+
+    fn localize(
+        &self,
+        _map: &LoadedMap,
+        name: &str,
+        _image: &Image<f32>,
+        _camera: &matloc_core::Camera,
+        _options: &MethodOptions,
+    ) -> Result<QueryResult, PipelineError> {
+        self.calls.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        Ok(QueryResult {
+            name: name.to_string(),
+            method: self.name().to_string(),
+            localized: true,
+            cam_from_world: Some(self.pose),
+            camera_center: Some(matloc_core::pose::camera_center(&self.pose).coords.into()),
+            confidence: None,
+            inliers: 0,
+            iterations: 0,
+            hypotheses: Vec::new(),
+            stage_seconds: Vec::new(),
+            total_seconds: 0.0,
+        })
+    }
+}
+
+/// A method registered by name runs through the same entry points as the built-in ones, with
+/// the checks they share: intrinsics no camera has are refused before it runs, and a pose
+/// outside the mapped volume is refused whichever method gave it; a batch of query specs and
+/// its JSON records take it as they take `structure`.
+#[test]
+fn a_registered_method_runs_through_the_shared_checks() {
+    use matloc_pipeline::methods::{MethodRegistry, MethodRegistryError};
+    use std::sync::Arc;
+    use std::sync::atomic::Ordering;
+
+    let b = built();
+    let map = LoadedMap::open(&b.map_dir).unwrap();
+    let f = b.dataset.split(Split::Test).next().unwrap();
+    let image = matloc_data::images::load_rgb(&b.dataset.image_path(f)).unwrap();
+    let options = MethodOptions::default();
+    let inside = Arc::new(FixedAnswer {
+        pose: f.cam_from_world,
+        calls: Default::default(),
+    });
+    let mut registry = MethodRegistry::builtin();
+    registry.register(inside.clone()).unwrap();
+    assert_eq!(
+        registry.register(inside.clone()),
+        Err(MethodRegistryError::Duplicate("fixed-answer".into()))
+    );
+    assert_eq!(registry.names()[..2], ["structure", "matloc"]);
+    let e = registry.get("nope").unwrap_err().to_string();
+    assert!(e.contains("fixed-answer") && e.contains("structure"), "{e}");
+    let method = registry.get("fixed-answer").unwrap();
+
+    let r = localize_with(&map, method.as_ref(), "q", &image, &f.camera, &options).unwrap();
+    assert_eq!(r.cam_from_world, Some(f.cam_from_world));
+    assert_eq!(r.method, "fixed-answer");
+    let bad = matloc_core::Camera {
+        cx: -5000.0,
+        ..f.camera
+    };
+    let calls = inside.calls.load(Ordering::SeqCst);
+    assert!(matches!(
+        localize_with(&map, method.as_ref(), "q", &image, &bad, &options),
+        Err(PipelineError::ImplausibleCamera(_))
+    ));
+    assert_eq!(
+        inside.calls.load(Ordering::SeqCst),
+        calls,
+        "ran on a bad camera"
+    );
+
+    // 5 km above the survey: outside the mapped volume, refused with the reason.
+    let far = FixedAnswer {
+        // x_cam = R (x + (0, 0, −5000)) + t: the same camera 5 km higher.
+        pose: f.cam_from_world * Pose::translation(0.0, 0.0, -5000.0),
+        calls: Default::default(),
+    };
+    let r = localize_with(&map, &far, "q", &image, &f.camera, &options).unwrap();
+    assert!(!r.localized && r.cam_from_world.is_none(), "{r:?}");
+
+    // The query path: specs → records, the plug-in's name in each.
+    let spec = matloc_data::query::QuerySpec {
+        name: "q.png".into(),
+        path: b.dataset.image_path(f),
+        camera: Ok(f.camera),
+        cam_from_world_gt: Some(f.cam_from_world),
+    };
+    let records = matloc_pipeline::query::localize_batch(
+        &map,
+        method.as_ref(),
+        &options,
+        std::slice::from_ref(&spec),
+        |_| Ok::<(), ()>(()),
+    )
+    .unwrap();
+    let world =
+        matloc_pipeline::query::OutputWorld::new(matloc_pipeline::query::WorldKind::Data, None)
+            .unwrap();
+    let v = matloc_pipeline::query::poses::jsonl_record(&records[0], &world).unwrap();
+    assert_eq!(v["method"], "fixed-answer");
+    assert_eq!(v["error_translation_m"].as_f64(), Some(0.0));
 }
 
 #[test]
@@ -939,7 +1057,7 @@ fn maps_without_depth_localize_within_1_5x_of_the_depth_build() {
             let (image, camera) = matloc_data::images::load_frame_image(&dataset, f, 1).unwrap();
             let e = localize_with(
                 &map,
-                Method::DEFAULT,
+                &Method::DEFAULT,
                 "q",
                 &image,
                 &camera,
@@ -992,7 +1110,7 @@ fn method_errors(
     let mut wrong = 0;
     for f in frames {
         let (image, camera) = matloc_data::images::load_frame_image(dataset, f, 1).unwrap();
-        let r = localize_with(map, method, "q", &image, &camera, &options).unwrap();
+        let r = localize_with(map, &method, "q", &image, &camera, &options).unwrap();
         errors.push(error_or_wrong(
             r.cam_from_world,
             &f.cam_from_world,
@@ -1073,7 +1191,7 @@ fn learned_error(
     wrong: &mut usize,
 ) -> f64 {
     let options = features_only();
-    let r = localize_with(map, Method::Matloc, "q", image, camera, &options).unwrap();
+    let r = localize_with(map, &Method::Matloc, "q", image, camera, &options).unwrap();
     error_or_wrong(r.cam_from_world, truth, wrong)
 }
 
@@ -1192,8 +1310,7 @@ fn built_another_day() -> &'static Built {
         let (dataset, map_dir) = fresh_tiny("end_to_end_tiny_another_day");
         let partial: serde_json::Value =
             serde_json::from_str(include_str!("../../configs/another-day.json")).unwrap();
-        let config: MapConfig =
-            serde_json::from_value(MapConfig::overlay_on_default(partial)).unwrap();
+        let config = MapConfig::from_partial(partial, "configs/another-day.json").unwrap();
         assert!(config.sunlight.enabled && config.encoder.train.net.shadow_invariant);
         build_one_thread(&dataset, &map_dir, &tiny_sized(config), &mut |e| {
             if let BuildEvent::StageFinished { name, seconds, .. } = e {
@@ -1504,7 +1621,7 @@ fn the_default_method_localizes_a_distorted_query_as_well_as_its_twin() {
             assert!((twin.camera.distortion.k1 - k1).abs() < 1e-12);
             let image = matloc_synth::flight::render_second_flight(&world, &config, &lens, twin, i);
             let r =
-                localize_with(&map, Method::DEFAULT, "q", &image, &twin.camera, &options).unwrap();
+                localize_with(&map, &Method::DEFAULT, "q", &image, &twin.camera, &options).unwrap();
             out.push(error_or_wrong(
                 r.cam_from_world,
                 &f.cam_from_world,
@@ -1620,12 +1737,12 @@ fn mirrored_views_and_impossible_intrinsics_get_no_pose() {
                     m.pixel_mut(x, y).copy_from_slice(image.pixel(sx, sy));
                 }
             }
-            let r = localize_with(&map, Method::DEFAULT, "mirror", &m, &camera, &options).unwrap();
+            let r = localize_with(&map, &Method::DEFAULT, "mirror", &m, &camera, &options).unwrap();
             if let Some(p) = r.cam_from_world {
                 mirrored_accepted.push((vertical, r.inliers, matloc_core::pose::camera_center(&p)));
             }
         }
-        let r = localize_with(&map, Method::DEFAULT, "q", &image, &camera, &options).unwrap();
+        let r = localize_with(&map, &Method::DEFAULT, "q", &image, &camera, &options).unwrap();
         straight_ok += usize::from(
             r.cam_from_world
                 .is_some_and(|p| within(&p, &f.cam_from_world, 0.25, 2.0)),
@@ -1635,7 +1752,7 @@ fn mirrored_views_and_impossible_intrinsics_get_no_pose() {
             fy: camera.fy * 10.0,
             ..camera
         };
-        let r = localize_with(&map, Method::DEFAULT, "long", &image, &far, &options).unwrap();
+        let r = localize_with(&map, &Method::DEFAULT, "long", &image, &far, &options).unwrap();
         if let Some(p) = r.cam_from_world {
             let centre = matloc_core::pose::camera_center(&p);
             assert!(
@@ -1662,7 +1779,7 @@ fn mirrored_views_and_impossible_intrinsics_get_no_pose() {
                 },
             ),
         ] {
-            match localize_with(&map, Method::DEFAULT, "bad", &image, &bad, &options) {
+            match localize_with(&map, &Method::DEFAULT, "bad", &image, &bad, &options) {
                 Err(PipelineError::ImplausibleCamera(e)) => assert_eq!(e.field(), field, "{e}"),
                 other => panic!("{field}: expected an implausible camera, got {other:?}"),
             }
@@ -1713,7 +1830,7 @@ fn renders_confirm_viewpoints_the_survey_never_flew() {
             matloc_synth::flight::render_second_flight(&world, &config, &flight, &frame, 500 + i);
         for (options, ok) in [(&with, &mut ok_with), (&without, &mut ok_without)] {
             let r =
-                localize_with(&map, Method::Structure, "q", &image, &f.camera, options).unwrap();
+                localize_with(&map, &Method::Structure, "q", &image, &f.camera, options).unwrap();
             if let Some(p) = r.cam_from_world {
                 let (t, a) = (
                     translation_error_m(&p, &pose),

@@ -87,7 +87,7 @@ fn a_path_traced_survey_without_depth_builds_and_localizes() {
         for f in &test {
             let (image, camera) = matloc_data::images::load_frame_image(&queries, f, 1).unwrap();
             let name = f.image_path.display().to_string();
-            let r = localize_with(&map, method, &name, &image, &camera, &options)
+            let r = localize_with(&map, &method, &name, &image, &camera, &options)
                 .unwrap_or_else(|e| panic!("{method} on {name}: {e}"));
             match r.cam_from_world {
                 Some(p) => {

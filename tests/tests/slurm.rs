@@ -147,7 +147,7 @@ fn test_poses(map_dir: &Path, dataset: &Dataset) -> Vec<Option<Pose>> {
         .split(Split::Test)
         .map(|f| {
             let (image, camera) = matloc_data::images::load_frame_image(dataset, f, 1).unwrap();
-            localize_with(&map, Method::Matloc, "q", &image, &camera, &options)
+            localize_with(&map, &Method::Matloc, "q", &image, &camera, &options)
                 .unwrap()
                 .cam_from_world
         })
@@ -186,8 +186,7 @@ fn a_map_built_as_slurm_jobs_matches_the_in_process_build() {
     let _ = std::fs::remove_dir_all(&dir);
     let data = dir.join("data");
     synthesize(&SynthConfig::preset("tiny").unwrap(), &data, &|_| {}).unwrap();
-    let config: MapConfig =
-        serde_json::from_value(MapConfig::overlay_on_default(tiny_config())).unwrap();
+    let config: MapConfig = MapConfig::from_partial(tiny_config(), "the tiny config").unwrap();
     let config_file = dir.join("config.json");
     std::fs::write(&config_file, tiny_config().to_string()).unwrap();
     let map_dir = dir.join("jobs_map");

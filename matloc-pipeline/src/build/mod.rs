@@ -7,7 +7,8 @@
 //! where it stopped, and a sub-NeRF interrupted mid-training resumes from its own checkpoint.
 //!
 //! The build is three steps that also run as separate jobs: [`plan_map`] (dataset checks,
-//! surface, partition, the keypoint structure of the training images), [`build_block`] per block (sub-NeRF, pairs, encoder, selection; as a job,
+//! surface, partition, the keypoint structure of the training images, the job list;
+//! [`jobs`] also writes the Slurm scripts), [`build_block`] per block (sub-NeRF, pairs, encoder, selection; as a job,
 //! [`run_block_job`] records into the block's own record, so blocks build side by side on
 //! several machines) and [`finish_map`] (merges the block records, place predictor,
 //! calibration). [`build_map`] runs the three in one process.
@@ -15,6 +16,7 @@
 pub mod calibration;
 pub mod common;
 pub mod encoder;
+pub mod jobs;
 pub mod nerf;
 pub mod pairs;
 pub mod partition;
@@ -34,6 +36,7 @@ use crate::map::manifest::{MapDir, MapError};
 
 pub use crate::config::MapConfig;
 pub use common::{BuildEvent, CurveLog, block_dataset};
+pub use jobs::JobCommands;
 pub use nerf::block_model_config;
 
 /// Builds (or resumes building) a map of `dataset` in `out` with the paper's pose-aware
@@ -96,17 +99,22 @@ pub struct Planned {
     pub partition: Partition,
 }
 
-/// The plan step with the pose-aware partition: see [`plan_map_with`].
+/// The plan step of a build run as jobs, with the pose-aware partition ([`plan_map_with`]),
+/// then the job list in `plan.json` ([`jobs::write_plan`]: each block's command and the finish
+/// command, running `jobs.program` on `jobs.data`; read it back with [`jobs::read_plan`]).
 pub fn plan_map(
     dataset: &Dataset,
     out: &Path,
     config: &MapConfig,
+    jobs: &JobCommands,
     progress: &mut dyn FnMut(&BuildEvent),
 ) -> Result<Planned, PipelineError> {
     let partitioner = PoseAwarePartitioner {
         config: config.partition,
     };
-    plan_map_with(dataset, out, config, &partitioner, progress)
+    let mut planned = plan_map_with(dataset, out, config, &partitioner, progress)?;
+    jobs::write_plan(&mut planned, jobs)?;
+    Ok(planned)
 }
 
 /// The plan step: checks the dataset, creates (or resumes) the map in `out`, finds the surface

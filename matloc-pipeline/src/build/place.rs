@@ -77,7 +77,7 @@ pub fn run(
                 // Kept at the size training samples from (twice the network input), not the
                 // working size: memory per image is then independent of the camera.
                 let net = &config.place.train.net;
-                images.push(matloc_place::resize_area(
+                images.push(matloc_core::image::resize_area(
                     &image,
                     2 * net.input_width,
                     2 * net.input_height,

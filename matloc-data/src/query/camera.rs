@@ -5,8 +5,8 @@
 //! are whole numbers, written as integers or as whole-valued floats (`160.0`, as Python's
 //! `json.dumps` writes a float); [`check_plausible`] rejects intrinsics no real camera has.
 
+use crate::colmap::{ColmapCamera, ColmapCameraModel};
 use matloc_core::{Camera, CameraError, Distortion, ImplausibleCamera};
-use matloc_data::colmap::{ColmapCamera, ColmapCameraModel};
 use serde::Deserialize;
 use serde_json::Value;
 

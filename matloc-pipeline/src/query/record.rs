@@ -3,10 +3,10 @@
 //! COLMAP's `qvec_wxyz` (w ≥ 0) + `tvec` (cam_from_world), the camera centre, the world the
 //! pose is in, and the errors against ground truth when known.
 
+use crate::methods::QueryResult;
 use matloc_core::Pose;
 use matloc_core::metrics::{rotation_error_deg, translation_error_m};
 use matloc_core::pose::{camera_center, colmap_from_cam_from_world};
-use matloc_pipeline::methods::QueryResult;
 use serde_json::{Value, json};
 
 /// The record of `result`. Poses are written in the output world: `to_world` maps a pose of
@@ -74,8 +74,7 @@ pub fn error_record(name: &str, error: &str) -> Value {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use matloc_pipeline::HypothesisReport;
-    use matloc_pipeline::methods::Method;
+    use crate::HypothesisReport;
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
     fn pose(x: f64, yaw: f64) -> Pose {
@@ -107,7 +106,7 @@ mod tests {
         };
         let result = QueryResult {
             name: "q".into(),
-            method: Method::Structure,
+            method: "structure".into(),
             localized: false,
             cam_from_world: None,
             camera_center: None,

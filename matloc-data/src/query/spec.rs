@@ -1,18 +1,52 @@
 //! Query input: hloc's query list with intrinsics (`NAME MODEL WIDTH HEIGHT PARAMS...`), image
 //! paths with intrinsics from a JSON file, a dataset or the map, and loading one query at the
 //! map's resolution. A problem with one query is kept with that query, so a batch goes on.
-//! Camera models and resizing are `matloc_serve`'s ([`matloc_serve::camera`],
-//! [`matloc_serve::query`]), so `matloc serve` reads queries the same way.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
 use matloc_core::{Camera, Image, Pose};
-use matloc_data::dataset::Frame;
-use matloc_data::{Dataset, Split};
-use matloc_pipeline::LoadedMap;
-use matloc_serve::camera::{colmap_camera, colmap_model, parse_camera_json};
+
+use super::camera::{CameraSpecError, colmap_camera, colmap_model, parse_camera_json};
+use super::image::{QueryError, fit_to_image, to_map_resolution};
+use crate::dataset::Frame;
+use crate::images::ImageLoadError;
+use crate::{Dataset, Split};
+
+/// Why a query cannot be read.
+#[derive(Debug, thiserror::Error)]
+pub enum QueryInputError {
+    /// The query has no usable intrinsics (the message names the list line or the reason).
+    #[error("{0}")]
+    Camera(String),
+    /// Its image file cannot be read.
+    #[error("reading query image {path}: {source}")]
+    Read {
+        /// The image file.
+        path: PathBuf,
+        /// The loader's error.
+        source: ImageLoadError,
+    },
+    /// The image does not fit its intrinsics or the map's images.
+    #[error(transparent)]
+    Image(#[from] QueryError),
+    /// A file (intrinsics, query list) cannot be read.
+    #[error("reading {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// An intrinsics file holds no usable camera.
+    #[error("{path}: invalid intrinsics: {source}")]
+    Intrinsics {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with it.
+        source: CameraSpecError,
+    },
+}
 
 /// One query ready to localize.
 pub struct Query {
@@ -41,6 +75,19 @@ pub struct QuerySpec {
     pub camera: Result<Camera, String>,
     /// Ground truth, when a dataset gives it.
     pub cam_from_world_gt: Option<Pose>,
+}
+
+/// Reads and parses an hloc query list file (see [`parse_query_list`]).
+pub fn read_query_list(
+    list: &Path,
+    images: &Path,
+    dataset: Option<&Dataset>,
+) -> Result<Vec<QuerySpec>, QueryInputError> {
+    let text = std::fs::read_to_string(list).map_err(|source| QueryInputError::Io {
+        path: list.to_path_buf(),
+        source,
+    })?;
+    Ok(parse_query_list(&text, list, images, dataset))
 }
 
 /// Parses an hloc query list (`queries_with_intrinsics.txt`): one query per line,
@@ -192,79 +239,76 @@ impl<'a> FrameIndex<'a> {
 }
 
 /// Reads the query's image and brings it to the map's resolution (`target`).
-pub fn load_query(spec: &QuerySpec, target: Option<&Camera>) -> Result<Query> {
-    let camera = spec.camera.clone().map_err(anyhow::Error::msg)?;
-    let image = matloc_data::images::load_rgb(&spec.path)
-        .with_context(|| format!("reading query image {}", spec.path.display()))?;
+pub fn load_query(spec: &QuerySpec, target: Option<&Camera>) -> Result<Query, QueryInputError> {
+    let camera = spec.camera.clone().map_err(QueryInputError::Camera)?;
+    load_at(
+        &spec.name,
+        &spec.path,
+        camera,
+        spec.cam_from_world_gt,
+        target,
+    )
+}
+
+/// Reads an image with its intrinsics and ground truth, brought to `target`'s size.
+fn load_at(
+    name: &str,
+    path: &Path,
+    camera: Camera,
+    cam_from_world: Option<Pose>,
+    target: Option<&Camera>,
+) -> Result<Query, QueryInputError> {
+    let image = crate::images::load_rgb(path).map_err(|source| QueryInputError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let (w, h, _) = image.shape();
-    let file_camera = fit_to_image(camera, w as u32, h as u32, &spec.name)?;
-    let (image, camera) = to_map_resolution(image, file_camera, target, &spec.name)?;
+    let file_camera = fit_to_image(camera, w as u32, h as u32, name)?;
+    let (image, camera) = to_map_resolution(image, file_camera, target, name)?;
     Ok(Query {
-        name: spec.name.clone(),
-        path: spec.path.clone(),
+        name: name.to_string(),
+        path: path.to_path_buf(),
         image,
         camera,
         file_camera,
-        cam_from_world: spec.cam_from_world_gt,
+        cam_from_world,
     })
 }
 
-/// Reads an intrinsics file (nerfstudio keys with optional `camera_model`, or a matloc camera).
-pub fn read_intrinsics(path: &Path) -> Result<Camera> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    parse_intrinsics(&text).with_context(|| format!("{}: invalid intrinsics", path.display()))
+/// Reads an intrinsics file (nerfstudio keys with optional `camera_model`, a COLMAP `model` +
+/// `params` object, or a matloc camera).
+pub fn read_intrinsics(path: &Path) -> Result<Camera, QueryInputError> {
+    let text = std::fs::read_to_string(path).map_err(|source| QueryInputError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    parse_camera_json(&text).map_err(|source| QueryInputError::Intrinsics {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
-/// Parses intrinsics JSON (see [`read_intrinsics`]; COLMAP `model` + `params` objects are
-/// read too).
-fn parse_intrinsics(text: &str) -> Result<Camera> {
-    Ok(parse_camera_json(text)?)
-}
-
-/// `camera` for an image of `w`×`h` pixels (see [`matloc_serve::query::fit_to_image`]).
-fn fit_to_image(camera: Camera, w: u32, h: u32, name: &str) -> Result<Camera> {
-    Ok(matloc_serve::query::fit_to_image(camera, w, h, name)?)
-}
-
-/// Brings a query to the map's image size when it differs (see
-/// [`matloc_serve::query::to_map_resolution`]).
-pub fn to_map_resolution(
-    image: Image<f32>,
-    camera: Camera,
-    map_camera: Option<&Camera>,
-    name: &str,
-) -> Result<(Image<f32>, Camera)> {
-    Ok(matloc_serve::query::to_map_resolution(
-        image, camera, map_camera, name,
-    )?)
-}
-
-/// The test queries of a dataset.
-pub fn dataset_queries(dataset: &Dataset, map: &LoadedMap, limit: usize) -> Result<Vec<Query>> {
-    let target = map.camera();
-    let mut out = Vec::new();
-    for f in dataset
+/// The first `limit` test frames of a dataset (all when 0) as queries at `target`'s size,
+/// with their ground truth; the first that cannot be read is the error.
+pub fn dataset_queries(
+    dataset: &Dataset,
+    target: Option<&Camera>,
+    limit: usize,
+) -> Result<Vec<Query>, QueryInputError> {
+    dataset
         .split(Split::Test)
         .take(if limit == 0 { usize::MAX } else { limit })
-    {
-        let path = dataset.image_path(f);
-        let name = f.image_path.display().to_string();
-        let image = matloc_data::images::load_rgb(&path)
-            .with_context(|| format!("reading query image {}", path.display()))?;
-        let (w, h, _) = image.shape();
-        let file_camera = fit_to_image(f.camera, w as u32, h as u32, &name)?;
-        let (image, camera) = to_map_resolution(image, file_camera, target.as_ref(), &name)?;
-        out.push(Query {
-            name,
-            path,
-            image,
-            camera,
-            file_camera,
-            cam_from_world: Some(f.cam_from_world),
-        });
-    }
-    Ok(out)
+        .map(|f| {
+            let name = f.image_path.display().to_string();
+            load_at(
+                &name,
+                &dataset.image_path(f),
+                f.camera,
+                Some(f.cam_from_world),
+                target,
+            )
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -345,19 +389,19 @@ mod tests {
     #[test]
     fn intrinsics_json_honours_camera_model() {
         let base = r#""w": 640, "h": 480, "fl_x": 500, "fl_y": 500, "cx": 320, "cy": 240"#;
-        let c = parse_intrinsics(&format!(
+        let c = parse_camera_json(&format!(
             r#"{{{base}, "camera_model": "OPENCV", "k1": 0.1}}"#
         ))
         .unwrap();
         assert_eq!(c.distortion.k1, 0.1);
-        let e = parse_intrinsics(&format!(
+        let e = parse_camera_json(&format!(
             r#"{{{base}, "camera_model": "OPENCV_FISHEYE", "k1": 0.1, "k4": 0.01}}"#
         ))
         .unwrap_err();
         assert!(format!("{e:#}").contains("OPENCV_FISHEYE"), "{e:#}");
-        let e = parse_intrinsics(&format!(r#"{{{base}, "k4": 0.01}}"#)).unwrap_err();
+        let e = parse_camera_json(&format!(r#"{{{base}, "k4": 0.01}}"#)).unwrap_err();
         assert!(format!("{e:#}").contains("k4"), "{e:#}");
-        let c = parse_intrinsics(
+        let c = parse_camera_json(
             r#"{"width": 64, "height": 48, "fx": 50, "fy": 50, "cx": 32, "cy": 24}"#,
         )
         .unwrap();

@@ -1,23 +1,63 @@
-//! Pose output of `localize` and `eval`: JSON lines, hloc's results file, a TUM trajectory, a
-//! COLMAP text model (or its `images.txt` alone) and nerfstudio `transforms.json`. Writers take
-//! finished [`QueryRecord`]s; they neither read images nor localize.
+//! Pose output of a batch of queries: JSON lines, hloc's results file, a TUM trajectory, a
+//! COLMAP text model (or its `images.txt` alone) and nerfstudio `transforms.json`, in the data's
+//! world or the original one. Writers take finished [`QueryRecord`]s; they neither read images
+//! nor localize.
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
-use clap::ValueEnum;
-use matloc_core::pose::colmap_from_cam_from_world;
+use matloc_core::pose::{PoseError, cam_from_other_world, colmap_from_cam_from_world};
 use matloc_core::{Camera, Pose};
-use matloc_data::colmap::{ColmapCamera, ColmapFormat, ColmapImage, ColmapModel, write_colmap};
+use matloc_data::colmap::{
+    ColmapCamera, ColmapError, ColmapFormat, ColmapImage, ColmapModel, write_colmap,
+};
 use matloc_data::dataset::{Dataset, Frame, SceneMetadata, Split};
-use matloc_data::nerfstudio::{applied_transform_pose, write_nerfstudio};
-use matloc_pipeline::methods::QueryResult;
-use matloc_serve::record::{error_record, localization_record};
+use matloc_data::nerfstudio::{NerfstudioError, applied_transform_pose, write_nerfstudio};
 use serde_json::Value;
 
+use super::record::{error_record, localization_record};
+use crate::methods::QueryResult;
+
+/// Why poses cannot be written.
+#[derive(Debug, thiserror::Error)]
+pub enum PoseWriteError {
+    /// The format cannot go where it was asked to.
+    #[error("{0}")]
+    Destination(String),
+    /// The data's `applied_transform` is not a rigid transform.
+    #[error("the data's applied_transform: {0}")]
+    AppliedTransform(#[source] PoseError),
+    /// A record cannot be serialised.
+    #[error("serialising a record: {0}")]
+    Json(#[from] serde_json::Error),
+    /// A file cannot be written.
+    #[error("writing {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The COLMAP model cannot be written.
+    #[error("writing the COLMAP model {path}: {source}")]
+    Colmap {
+        /// The model directory.
+        path: PathBuf,
+        /// The writer's error.
+        source: ColmapError,
+    },
+    /// The nerfstudio file cannot be written.
+    #[error("writing {path}: {source}")]
+    Nerfstudio {
+        /// The file or directory.
+        path: PathBuf,
+        /// The writer's error.
+        source: Box<NerfstudioError>,
+    },
+}
+
 /// A pose output format.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PoseFormat {
     /// One JSON object per query: pose (`qvec_wxyz`, `tvec`), confidence, times, errors.
     Jsonl,
@@ -33,6 +73,15 @@ pub enum PoseFormat {
 }
 
 impl PoseFormat {
+    /// Every format, in the order of [`PoseFormat::name`]'s listing.
+    pub const ALL: [PoseFormat; 5] = [
+        PoseFormat::Jsonl,
+        PoseFormat::Colmap,
+        PoseFormat::Hloc,
+        PoseFormat::Tum,
+        PoseFormat::Nerfstudio,
+    ];
+
     /// Command-line name.
     pub fn name(self) -> &'static str {
         match self {
@@ -55,9 +104,11 @@ impl PoseFormat {
     }
 
     /// Checks that the format can go to `out` (stdout when `None`).
-    pub fn check_destination(self, out: Option<&Path>) -> Result<()> {
+    pub fn check_destination(self, out: Option<&Path>) -> Result<(), PoseWriteError> {
         if self == PoseFormat::Nerfstudio && out.is_none() {
-            bail!("--format nerfstudio writes a file: give --out FILE.json or --out DIR");
+            return Err(PoseWriteError::Destination(
+                "--format nerfstudio writes a file: give --out FILE.json or --out DIR".into(),
+            ));
         }
         Ok(())
     }
@@ -78,8 +129,8 @@ fn is_txt(p: &Path) -> bool {
 }
 
 /// Which world written poses are in.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ValueEnum)]
-pub enum WorldArg {
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum WorldKind {
     /// The world of the data the map was built from (and of `--data`).
     #[default]
     Data,
@@ -87,12 +138,12 @@ pub enum WorldArg {
     Original,
 }
 
-impl WorldArg {
+impl WorldKind {
     /// Command-line name.
     pub fn name(self) -> &'static str {
         match self {
-            WorldArg::Data => "data",
-            WorldArg::Original => "original",
+            WorldKind::Data => "data",
+            WorldKind::Original => "original",
         }
     }
 }
@@ -100,7 +151,7 @@ impl WorldArg {
 /// The world the written poses are in, and how to get there from the data's world.
 #[derive(Clone, Debug, PartialEq)]
 pub struct OutputWorld {
-    kind: WorldArg,
+    kind: WorldKind,
     /// `world_from_original` when poses are re-expressed in the original world.
     world_from_original: Option<Pose>,
     /// The data's `applied_transform`, recorded in nerfstudio output in the data world.
@@ -110,10 +161,10 @@ pub struct OutputWorld {
 impl OutputWorld {
     /// The world `kind` for data whose `applied_transform` is `applied` (`None`: the data's
     /// world is its original world).
-    pub fn new(kind: WorldArg, applied: Option<[[f64; 4]; 3]>) -> Result<Self> {
+    pub fn new(kind: WorldKind, applied: Option<[[f64; 4]; 3]>) -> Result<Self, PoseWriteError> {
         let world_from_original = match (kind, &applied) {
-            (WorldArg::Original, Some(a)) => {
-                Some(applied_transform_pose(a).context("the data's applied_transform")?)
+            (WorldKind::Original, Some(a)) => {
+                Some(applied_transform_pose(a).map_err(PoseWriteError::AppliedTransform)?)
             }
             _ => None,
         };
@@ -132,7 +183,7 @@ impl OutputWorld {
     /// A data-world `cam_from_world` in the output world.
     pub fn pose(&self, cam_from_world: &Pose) -> Pose {
         match &self.world_from_original {
-            Some(world_from_original) => cam_from_world * world_from_original,
+            Some(world_from_original) => cam_from_other_world(cam_from_world, world_from_original),
             None => *cam_from_world,
         }
     }
@@ -140,8 +191,8 @@ impl OutputWorld {
     /// The `applied_transform` that maps the original world into the output world, if any.
     fn applied_transform(&self) -> Option<[[f64; 4]; 3]> {
         match self.kind {
-            WorldArg::Data => self.applied_transform,
-            WorldArg::Original => None,
+            WorldKind::Data => self.applied_transform,
+            WorldKind::Original => None,
         }
     }
 }
@@ -245,8 +296,8 @@ fn qvec_tvec(pose: &Pose) -> ([f64; 4], [f64; 3]) {
 }
 
 /// The JSON record of one query (schema in `matloc-cli/README.md`; built by
-/// [`matloc_serve::record`], which `matloc serve` answers with too).
-pub fn jsonl_record(record: &QueryRecord, world: &OutputWorld) -> Result<Value> {
+/// [`localization_record`], which `matloc serve` answers with too).
+pub fn jsonl_record(record: &QueryRecord, world: &OutputWorld) -> Result<Value, PoseWriteError> {
     match record {
         QueryRecord::Failed { name, error, .. } => Ok(error_record(name, error)),
         QueryRecord::Done(l) => Ok(localization_record(
@@ -288,7 +339,7 @@ pub fn record_text(
     format: PoseFormat,
     record: &QueryRecord,
     world: &OutputWorld,
-) -> Result<Option<String>> {
+) -> Result<Option<String>, PoseWriteError> {
     if format == PoseFormat::Jsonl {
         return Ok(Some(format!(
             "{}\n",
@@ -334,7 +385,7 @@ pub fn record_text(
                 q[0], q[1], q[2], q[3], t[0], t[1], t[2]
             )
         }
-        PoseFormat::Jsonl | PoseFormat::Nerfstudio => bail!("{} is not line-based", format.name()),
+        PoseFormat::Jsonl | PoseFormat::Nerfstudio => return Ok(None),
     }))
 }
 
@@ -343,7 +394,7 @@ pub fn render_text(
     format: PoseFormat,
     records: &[QueryRecord],
     world: &OutputWorld,
-) -> Result<String> {
+) -> Result<String, PoseWriteError> {
     let mut s = header(format).unwrap_or_default().to_string();
     let mut names = NamesOnce::default();
     for r in records {
@@ -427,17 +478,28 @@ pub fn write_poses(
     world: &OutputWorld,
     root: &Path,
     out: &Path,
-) -> Result<()> {
+) -> Result<(), PoseWriteError> {
     if format.is_line_based(Some(out)) {
         let text = render_text(format, records, world)?;
-        return matloc_core::fsutil::write_atomic(out, text.as_bytes())
-            .with_context(|| format!("writing {}", out.display()));
+        return matloc_core::fsutil::write_atomic(out, text.as_bytes()).map_err(|source| {
+            PoseWriteError::Io {
+                path: out.to_path_buf(),
+                source,
+            }
+        });
     }
     match format {
         PoseFormat::Colmap => write_colmap(&colmap_model(records, world), out, ColmapFormat::Text)
-            .with_context(|| format!("writing the COLMAP model {}", out.display())),
-        _ => write_nerfstudio(&nerfstudio_dataset(records, world, root), out)
-            .with_context(|| format!("writing {}", out.display())),
+            .map_err(|source| PoseWriteError::Colmap {
+                path: out.to_path_buf(),
+                source,
+            }),
+        _ => write_nerfstudio(&nerfstudio_dataset(records, world, root), out).map_err(|source| {
+            PoseWriteError::Nerfstudio {
+                path: out.to_path_buf(),
+                source: Box::new(source),
+            }
+        }),
     }
 }
 
@@ -463,7 +525,6 @@ mod tests {
     use super::*;
     use matloc_core::pose::{cam_from_world_from_colmap, camera_center};
     use matloc_data::nerfstudio::{cam_from_world_from_original, read_nerfstudio};
-    use matloc_pipeline::methods::Method;
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
     use serde_json::json;
 
@@ -478,7 +539,7 @@ mod tests {
     fn result(name: &str, cam_from_world: Option<Pose>) -> QueryResult {
         QueryResult {
             name: name.into(),
-            method: Method::Matloc,
+            method: "matloc".into(),
             localized: cam_from_world.is_some(),
             cam_from_world,
             camera_center: cam_from_world.map(|p| camera_center(&p).coords.into()),
@@ -545,14 +606,14 @@ mod tests {
 
     fn worlds() -> [OutputWorld; 2] {
         [
-            OutputWorld::new(WorldArg::Data, Some(applied())).unwrap(),
-            OutputWorld::new(WorldArg::Original, Some(applied())).unwrap(),
+            OutputWorld::new(WorldKind::Data, Some(applied())).unwrap(),
+            OutputWorld::new(WorldKind::Original, Some(applied())).unwrap(),
         ]
     }
 
     #[test]
     fn original_world_undoes_applied_transform() {
-        let world = OutputWorld::new(WorldArg::Original, Some(applied())).unwrap();
+        let world = OutputWorld::new(WorldKind::Original, Some(applied())).unwrap();
         let p = pose(3);
         let back = cam_from_world_from_original(&applied(), &world.pose(&p)).unwrap();
         assert_same(&back, &p);
@@ -560,7 +621,7 @@ mod tests {
         let a = applied_transform_pose(&applied()).unwrap();
         let c_orig = camera_center(&world.pose(&p));
         assert!((a.transform_point(&c_orig) - camera_center(&p)).norm() < 1e-9);
-        let none = OutputWorld::new(WorldArg::Original, None).unwrap();
+        let none = OutputWorld::new(WorldKind::Original, None).unwrap();
         assert_same(&none.pose(&p), &p);
     }
 
@@ -757,7 +818,7 @@ mod tests {
             omission(PoseFormat::Colmap, &spaced[0]).unwrap(),
             "its name contains whitespace"
         );
-        let world = OutputWorld::new(WorldArg::Data, None).unwrap();
+        let world = OutputWorld::new(WorldKind::Data, None).unwrap();
         let model = colmap_model(&spaced, &world);
         assert!(model.images.values().all(|i| !i.name.contains(' ')));
         assert_eq!(model.images.len(), 2);

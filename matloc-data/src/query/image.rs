@@ -93,7 +93,7 @@ impl Default for DecodeLimits {
 }
 
 /// Decodes a PNG or JPEG image into three channels in `[0, 1]`, as
-/// [`matloc_data::images::load_rgb`] reads a file (8-bit values / 255; 16-bit / 65535), so a
+/// [`crate::images::load_rgb`] reads a file (8-bit values / 255; 16-bit / 65535), so a
 /// query sent as bytes gives the same floats as the same file read from disk.
 pub fn decode_rgb(bytes: &[u8], limits: DecodeLimits) -> Result<Image<f32>, QueryError> {
     let format = image::guess_format(bytes).map_err(|_| QueryError::UnknownFormat)?;
@@ -113,7 +113,7 @@ pub fn decode_rgb(bytes: &[u8], limits: DecodeLimits) -> Result<Image<f32>, Quer
         },
         e => QueryError::Decode(e),
     })?;
-    Ok(matloc_data::images::rgb_from_decoded(img))
+    Ok(crate::images::rgb_from_decoded(img))
 }
 
 /// The width and height a PNG or JPEG states in its header, without decoding the pixels;
@@ -179,7 +179,8 @@ pub fn to_map_resolution(
             map_height: target.height,
             source,
         })?;
-    let resized = matloc_place::resize_area(&image, target.width as usize, target.height as usize);
+    let resized =
+        matloc_core::image::resize_area(&image, target.width as usize, target.height as usize);
     Ok((resized, rescaled))
 }
 
@@ -202,7 +203,7 @@ mod tests {
         let bytes = png(20, 10);
         let path = dir.path().join("q.png");
         std::fs::write(&path, &bytes).unwrap();
-        let from_file = matloc_data::images::load_rgb(&path).unwrap();
+        let from_file = crate::images::load_rgb(&path).unwrap();
         let from_bytes = decode_rgb(&bytes, DecodeLimits::default()).unwrap();
         assert_eq!(from_file, from_bytes);
     }
