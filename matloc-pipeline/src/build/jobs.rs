@@ -4,7 +4,6 @@
 
 use std::path::{Path, PathBuf};
 
-use super::Planned;
 use crate::map::layout::{PLAN_FILE, PLAN_FORMAT, PlanRecord};
 use crate::map::manifest::{MapDir, MapError};
 
@@ -71,11 +70,16 @@ fn absolute(path: &Path) -> PathBuf {
     std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf())
 }
 
-/// Writes the job list of a planned map into its `plan.json` (checksummed in the manifest):
-/// one `map block ROOT --block B` per block, then `map finish ROOT`.
-pub fn write_plan(planned: &mut Planned, jobs: &JobCommands) -> Result<PlanRecord, JobError> {
-    let root = absolute(planned.map.root());
-    let blocks: Vec<usize> = (0..planned.partition.blocks.len()).collect();
+/// Writes the job list of a planned map with `blocks` blocks into its `plan.json`
+/// (checksummed in the manifest): one `map block ROOT --block B` per block, then
+/// `map finish ROOT`.
+pub fn write_plan(
+    map: &mut MapDir,
+    blocks: usize,
+    jobs: &JobCommands,
+) -> Result<PlanRecord, JobError> {
+    let root = absolute(map.root());
+    let blocks: Vec<usize> = (0..blocks).collect();
     let record = PlanRecord {
         format: PLAN_FORMAT.to_string(),
         version: 1,
@@ -87,8 +91,8 @@ pub fn write_plan(planned: &mut Planned, jobs: &JobCommands) -> Result<PlanRecor
         finish_command: jobs.command(&root, "finish", &[]),
         blocks,
     };
-    planned.map.write_json(PLAN_FILE, &record)?;
-    planned.map.save()?;
+    map.write_json(PLAN_FILE, &record)?;
+    map.save()?;
     Ok(record)
 }
 

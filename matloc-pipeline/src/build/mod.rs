@@ -113,7 +113,8 @@ pub fn plan_map(
         config: config.partition,
     };
     let mut planned = plan_map_with(dataset, out, config, &partitioner, progress)?;
-    jobs::write_plan(&mut planned, jobs)?;
+    let blocks = planned.partition.blocks.len();
+    jobs::write_plan(&mut planned.map, blocks, jobs)?;
     Ok(planned)
 }
 
