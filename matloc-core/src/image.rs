@@ -294,6 +294,39 @@ pub fn resize_area(img: &Image<f32>, width: usize, height: usize) -> Image<f32> 
     out
 }
 
+/// Averages `factor × factor` blocks (box filter). Trailing rows/columns that do not fill a
+/// block are dropped, so the output is `(W / factor) × (H / factor)` and output pixel `i`
+/// covers input pixels `[i·factor, (i+1)·factor)`: the pixel scale is exactly `1 / factor`.
+pub fn downscale_box(img: &Image<f32>, factor: u32) -> Image<f32> {
+    let f = factor.max(1) as usize;
+    if f == 1 {
+        return img.clone();
+    }
+    let (w, h, c) = img.shape();
+    let (ow, oh) = ((w / f).max(1).min(w), (h / f).max(1).min(h));
+    let mut out = Image::new(ow, oh, c);
+    let mut acc = vec![0.0f32; c];
+    for oy in 0..oh {
+        for ox in 0..ow {
+            acc.iter_mut().for_each(|a| *a = 0.0);
+            let mut n = 0usize;
+            for y in oy * f..((oy + 1) * f).min(h) {
+                for x in ox * f..((ox + 1) * f).min(w) {
+                    for (a, v) in acc.iter_mut().zip(img.pixel(x, y)) {
+                        *a += v;
+                    }
+                    n += 1;
+                }
+            }
+            let inv = 1.0 / n.max(1) as f32;
+            for (o, a) in out.pixel_mut(ox, oy).iter_mut().zip(&acc) {
+                *o = a * inv;
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -368,5 +401,13 @@ mod tests {
         let d = img.data();
         let expect = (d[0] + d[3] + d[160 * 3] + d[161 * 3]) / 4.0;
         assert!((half.data()[0] - expect).abs() < 1e-6);
+    }
+
+    #[test]
+    fn box_downscale_averages_blocks() {
+        let img = Image::from_vec(4, 2, 1, vec![0.0, 2.0, 4.0, 6.0, 2.0, 4.0, 6.0, 8.0]).unwrap();
+        let out = downscale_box(&img, 2);
+        assert_eq!(out.shape(), (2, 1, 1));
+        assert_eq!(out.data(), &[2.0, 6.0]);
     }
 }

@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 
 use image::codecs::png::PngEncoder;
 use image::{DynamicImage, ImageBuffer, Luma, Rgb};
+use matloc_core::image::downscale_box;
 use matloc_core::{Camera, Image};
 use npyz::WriterBuilder;
 use thiserror::Error;
@@ -404,39 +405,6 @@ pub fn rgb_from_decoded(img: DynamicImage) -> Image<f32> {
     Image::from_vec(w, h, 3, data).expect("RGB conversion gives w*h*3 values")
 }
 
-/// Averages `factor × factor` blocks (box filter). Trailing rows/columns that do not fill a
-/// block are dropped, so the output is `(W / factor) × (H / factor)` and output pixel `i`
-/// covers input pixels `[i·factor, (i+1)·factor)`: the pixel scale is exactly `1 / factor`.
-pub fn downscale_box(img: &Image<f32>, factor: u32) -> Image<f32> {
-    let f = factor.max(1) as usize;
-    if f == 1 {
-        return img.clone();
-    }
-    let (w, h, c) = img.shape();
-    let (ow, oh) = ((w / f).max(1).min(w), (h / f).max(1).min(h));
-    let mut out = Image::new(ow, oh, c);
-    let mut acc = vec![0.0f32; c];
-    for oy in 0..oh {
-        for ox in 0..ow {
-            acc.iter_mut().for_each(|a| *a = 0.0);
-            let mut n = 0usize;
-            for y in oy * f..((oy + 1) * f).min(h) {
-                for x in ox * f..((ox + 1) * f).min(w) {
-                    for (a, v) in acc.iter_mut().zip(img.pixel(x, y)) {
-                        *a += v;
-                    }
-                    n += 1;
-                }
-            }
-            let inv = 1.0 / n.max(1) as f32;
-            for (o, a) in out.pixel_mut(ox, oy).iter_mut().zip(&acc) {
-                *o = a * inv;
-            }
-        }
-    }
-    out
-}
-
 /// Subsamples a depth map by taking the pixel nearest each block's centre: averaging depths
 /// across an occlusion edge would invent surfaces that exist in neither layer.
 pub fn downscale_depth(depth: &Image<f32>, factor: u32) -> Image<f32> {
@@ -479,7 +447,7 @@ pub fn fit_camera_to_size(
         })
 }
 
-/// Intrinsics after [`downscale_box`] by `factor` (exact `1 / factor` scale, sizes floored).
+/// Intrinsics after [`downscale_box`](matloc_core::image::downscale_box) by `factor` (exact `1 / factor` scale, sizes floored).
 pub fn box_downscaled_camera(camera: &Camera, factor: u32) -> Camera {
     let f = factor.max(1);
     let s = 1.0 / f as f64;
@@ -1152,14 +1120,6 @@ mod tests {
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             prop_assert_eq!(bits(img.data()), bits(&data));
         }
-    }
-
-    #[test]
-    fn box_downscale_averages_blocks() {
-        let img = Image::from_vec(4, 2, 1, vec![0.0, 2.0, 4.0, 6.0, 2.0, 4.0, 6.0, 8.0]).unwrap();
-        let out = downscale_box(&img, 2);
-        assert_eq!(out.shape(), (2, 1, 1));
-        assert_eq!(out.data(), &[2.0, 6.0]);
     }
 
     /// A PNG with only a signature and an IHDR chunk claiming `w × h` RGB8 pixels.

@@ -5,9 +5,9 @@ use std::path::PathBuf;
 
 use matloc_core::{Camera, Distortion, Image, Pose};
 use matloc_data::images::{
-    ImageLoadError, PNG_DEPTH_SCALE_M, downscale_box, encode_npy_f32, load_frame_depth,
-    load_frame_image, load_rgb, parse_npy, read_depth, read_depth_npy, write_depth_npy,
-    write_depth_png, write_png_rgb,
+    ImageLoadError, PNG_DEPTH_SCALE_M, encode_npy_f32, load_frame_depth, load_frame_image,
+    load_rgb, parse_npy, read_depth, read_depth_npy, write_depth_npy, write_depth_png,
+    write_png_rgb,
 };
 use matloc_data::{Dataset, Frame, Split};
 
@@ -101,7 +101,7 @@ fn intrinsics_rescale_when_aspect_matches() {
         ),
         (8, 6, 7.5, 4.0)
     );
-    let expected = downscale_box(&img, 4);
+    let expected = matloc_core::image::downscale_box(&img, 4);
     assert_eq!(small.data(), expected.data());
 }
 
@@ -300,7 +300,7 @@ fn working_dataset_fits_file_sizes_then_downscales_every_frame_alike() {
     // The 8-bit file box-downscaled.
     let file = load_rgb(&dir.path().join("img.png")).unwrap();
     assert!(
-        img == downscale_box(&file, 2),
+        img == matloc_core::image::downscale_box(&file, 2),
         "not the box-downscaled file"
     );
     // A further downscale on top of the working size.

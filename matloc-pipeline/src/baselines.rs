@@ -319,31 +319,6 @@ impl Default for InerfOptions {
     }
 }
 
-/// Box-filter downscale of an RGB image by an integer factor (the camera follows with
-/// [`Camera::downscaled`]).
-fn downscale_image(image: &Image<f32>, factor: usize) -> Image<f32> {
-    if factor <= 1 {
-        return image.clone();
-    }
-    let (w, h, c) = image.shape();
-    let (nw, nh) = (w / factor, h / factor);
-    let mut out = Image::new(nw, nh, c);
-    let norm = 1.0 / (factor * factor) as f32;
-    for y in 0..nh {
-        for x in 0..nw {
-            let dst = out.pixel_mut(x, y);
-            for yy in y * factor..(y + 1) * factor {
-                for xx in x * factor..(x + 1) * factor {
-                    for (d, s) in dst.iter_mut().zip(image.pixel(xx, yy)) {
-                        *d += s * norm;
-                    }
-                }
-            }
-        }
-    }
-    out
-}
-
 /// `exp` of a tangent vector `(ω, v)` as an isometry acting in the camera frame.
 fn tangent_to_isometry(xi: &Vector6<f64>) -> Isometry3<f64> {
     let omega = Vector3::new(xi[0], xi[1], xi[2]);
@@ -428,7 +403,7 @@ pub fn inerf(
     for &div in &stages_div {
         let div = div.max(1);
         let cam = camera.downscaled(div)?;
-        let img = downscale_image(query, div as usize);
+        let img = matloc_core::image::downscale_box(query, div);
         let gray = GrayImage::from_image(&img);
         // Interest regions: keypoints of the query at this resolution.
         let (kps, _) = detect_and_describe(
@@ -537,7 +512,7 @@ mod tests {
         for (i, v) in img.data_mut().iter_mut().enumerate() {
             *v = (i / 3 % 2) as f32; // alternating columns 0, 1
         }
-        let d = downscale_image(&img, 2);
+        let d = matloc_core::image::downscale_box(&img, 2);
         assert_eq!(d.shape(), (2, 1, 3));
         assert!(d.data().iter().all(|v| (v - 0.5).abs() < 1e-6));
     }

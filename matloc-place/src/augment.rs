@@ -55,22 +55,6 @@ impl AugmentConfig {
     }
 }
 
-/// Bilinear sample of channel `k` at continuous pixel coordinates (centres at `+0.5`), clamped
-/// to the border.
-fn bilinear(img: &Image<f32>, x: f64, y: f64, k: usize) -> f32 {
-    let (w, h, c) = (img.width(), img.height(), img.channels());
-    let fx = (x - 0.5).clamp(0.0, (w - 1) as f64);
-    let fy = (y - 0.5).clamp(0.0, (h - 1) as f64);
-    let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
-    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-    let (ax, ay) = ((fx - x0 as f64) as f32, (fy - y0 as f64) as f32);
-    let d = img.data();
-    let p = |xx: usize, yy: usize| d[(yy * w + xx) * c + k];
-    let top = p(x0, y0) * (1.0 - ax) + p(x1, y0) * ax;
-    let bot = p(x0, y1) * (1.0 - ax) + p(x1, y1) * ax;
-    top * (1.0 - ay) + bot * ay
-}
-
 /// One random augmentation of `src` (ideally prepared at twice the output size) into a
 /// `width × height` image: a rotated, shifted crop sampled at twice the output resolution and
 /// box-averaged down (so the warp does not alias), then photometric jitter and noise.
@@ -110,9 +94,8 @@ pub fn augment(
                 let oy = ((v as f64 + 0.5) / h2 as f64 - 0.5) * sh * crop;
                 let x = 0.5 * sw + shift_x + cos * ox - sin * oy;
                 let y = 0.5 * sh + shift_y + sin * ox + cos * oy;
-                for k in 0..c {
-                    data[(v * w2 + u) * c + k] = bilinear(src, x, y, k);
-                }
+                let at = (v * w2 + u) * c;
+                src.sample_bilinear(x, y, &mut data[at..at + c]);
             }
         }
     }

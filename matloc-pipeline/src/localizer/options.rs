@@ -87,7 +87,7 @@ pub fn query_at_working_size<'a>(
         return (std::borrow::Cow::Borrowed(image), *camera);
     }
     (
-        std::borrow::Cow::Owned(matloc_data::images::downscale_box(image, f)),
+        std::borrow::Cow::Owned(matloc_core::image::downscale_box(image, f)),
         matloc_data::images::box_downscaled_camera(camera, f),
     )
 }
