@@ -724,6 +724,28 @@ pub fn write_depth_npy(depth: &Image<f32>, path: &Path) -> Result<(), ImageLoadE
     .map_err(|e| io_error(path, e))
 }
 
+/// The bytes of an `.npy` file (format `major`.0) whose header is the text `dict`, padded
+/// with spaces and a newline as numpy pads it, followed by `data` as given. Nothing is
+/// checked: fixtures use it to give readers headers numpy would not write.
+pub fn npy_with_header(dict: &str, major: u8, data: &[u8]) -> Vec<u8> {
+    let lead = if major == 1 { 10 } else { 12 };
+    let mut header = dict.to_string();
+    while !(lead + header.len() + 1).is_multiple_of(64) {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY".to_vec();
+    out.extend_from_slice(&[major, 0]);
+    if major == 1 {
+        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    } else {
+        out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    }
+    out.extend_from_slice(header.as_bytes());
+    out.extend_from_slice(data);
+    out
+}
+
 /// Serialises a `(height, width)` float32 array in `.npy` format (`<f4`, C order, the data
 /// aligned to 64 bytes).
 ///
@@ -937,26 +959,6 @@ mod tests {
         assert_eq!(img.data(), &[1.0, 2.0, 3.0, 4.0]);
     }
 
-    /// An `.npy` file with `dict` as its header text (padded as numpy pads it) and `data`.
-    fn npy_with(dict: &str, major: u8, data: &[u8]) -> Vec<u8> {
-        let lead = if major == 1 { 10 } else { 12 };
-        let mut header = dict.to_string();
-        while !(lead + header.len() + 1).is_multiple_of(64) {
-            header.push(' ');
-        }
-        header.push('\n');
-        let mut out = b"\x93NUMPY".to_vec();
-        out.extend_from_slice(&[major, 0]);
-        if major == 1 {
-            out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-        } else {
-            out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-        }
-        out.extend_from_slice(header.as_bytes());
-        out.extend_from_slice(data);
-        out
-    }
-
     fn npy_dict(descr: &str, fortran: bool, shape: &str) -> String {
         let order = if fortran { "True" } else { "False" };
         format!("{{'descr': '{descr}', 'fortran_order': {order}, 'shape': {shape}, }}")
@@ -968,7 +970,12 @@ mod tests {
             .iter()
             .flat_map(|v| v.to_le_bytes())
             .collect();
-        let img = parse_npy(&npy_with(&npy_dict("<f8", false, "(2, 3)"), 1, &data)).unwrap();
+        let img = parse_npy(&npy_with_header(
+            &npy_dict("<f8", false, "(2, 3)"),
+            1,
+            &data,
+        ))
+        .unwrap();
         assert_eq!(img.shape(), (3, 2, 1));
         assert_eq!(img.data(), &[0.5, 1e3, 2.25, 0.0, 7.0, 1e-3f64 as f32]);
     }
@@ -976,7 +983,12 @@ mod tests {
     #[test]
     fn shape_h_w_1_and_version_2_are_read() {
         let data: Vec<u8> = [1.0f32, 2.0].iter().flat_map(|v| v.to_le_bytes()).collect();
-        let img = parse_npy(&npy_with(&npy_dict("<f4", false, "(1, 2, 1)"), 2, &data)).unwrap();
+        let img = parse_npy(&npy_with_header(
+            &npy_dict("<f4", false, "(1, 2, 1)"),
+            2,
+            &data,
+        ))
+        .unwrap();
         assert_eq!(img.shape(), (2, 1, 1));
         assert_eq!(img.data(), &[1.0, 2.0]);
     }
@@ -988,7 +1000,7 @@ mod tests {
             .iter()
             .flat_map(|v| v.to_le_bytes())
             .collect();
-        let img = parse_npy(&npy_with(&npy_dict("<f4", true, "(2, 3)"), 1, &data)).unwrap();
+        let img = parse_npy(&npy_with_header(&npy_dict("<f4", true, "(2, 3)"), 1, &data)).unwrap();
         assert_eq!(img.shape(), (3, 2, 1));
         assert_eq!(img.data(), &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
     }
@@ -1003,7 +1015,7 @@ mod tests {
             ("<c8", 8),
             ("|O", 8),
         ] {
-            let e = parse_npy(&npy_with(
+            let e = parse_npy(&npy_with_header(
                 &npy_dict(descr, false, "(2, 2)"),
                 1,
                 &vec![0; 4 * size],
@@ -1015,14 +1027,26 @@ mod tests {
             );
         }
         for descr in ["zz", "<f16", "=f4"] {
-            assert!(parse_npy(&npy_with(&npy_dict(descr, false, "(2, 2)"), 1, &[0; 16])).is_err());
+            assert!(
+                parse_npy(&npy_with_header(
+                    &npy_dict(descr, false, "(2, 2)"),
+                    1,
+                    &[0; 16]
+                ))
+                .is_err()
+            );
         }
     }
 
     #[test]
     fn wrong_number_of_dimensions_is_an_error() {
         for shape in ["()", "(4,)", "(2, 2, 3)", "(1, 2, 2, 1)"] {
-            let e = parse_npy(&npy_with(&npy_dict("<f4", false, shape), 1, &[0; 48])).unwrap_err();
+            let e = parse_npy(&npy_with_header(
+                &npy_dict("<f4", false, shape),
+                1,
+                &[0; 48],
+            ))
+            .unwrap_err();
             assert!(e.contains("expected shape (H, W)"), "{shape}: {e}");
         }
     }
@@ -1047,17 +1071,17 @@ mod tests {
                 .into(),
         ] {
             assert!(
-                parse_npy(&npy_with(&dict, 1, &data)).is_err(),
+                parse_npy(&npy_with_header(&dict, 1, &data)).is_err(),
                 "{}",
                 &dict[..dict.len().min(80)]
             );
         }
         // A version-2 header that claims 4 GiB.
-        let mut b = npy_with(&npy_dict("<f4", false, "(2, 2)"), 2, &data);
+        let mut b = npy_with_header(&npy_dict("<f4", false, "(2, 2)"), 2, &data);
         b[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
         let e = parse_npy(&b).unwrap_err();
         assert!(e.contains("truncated header"), "{e}");
-        let mut b = npy_with(&npy_dict("<f4", false, "(2, 2)"), 1, &data);
+        let mut b = npy_with_header(&npy_dict("<f4", false, "(2, 2)"), 1, &data);
         b[6] = 9;
         assert!(parse_npy(&b).is_err());
         assert!(parse_npy(b"").is_err());

@@ -1505,7 +1505,7 @@ fn decode_cases(g: &mut Gen, base: &Base) {
 // .npy depth maps
 
 fn npy(descr: &str, fortran: bool, shape: &str, data: &[u8]) -> Vec<u8> {
-    npy_header(
+    matloc_data::images::npy_with_header(
         &format!(
             "{{'descr': '{descr}', 'fortran_order': {}, 'shape': {shape}, }}",
             if fortran { "True" } else { "False" }
@@ -1513,25 +1513,6 @@ fn npy(descr: &str, fortran: bool, shape: &str, data: &[u8]) -> Vec<u8> {
         1,
         data,
     )
-}
-
-fn npy_header(dict: &str, major: u8, data: &[u8]) -> Vec<u8> {
-    let mut header = dict.to_string();
-    let lead = if major == 1 { 10 } else { 12 };
-    while !(lead + header.len() + 1).is_multiple_of(64) {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY".to_vec();
-    out.extend_from_slice(&[major, 0]);
-    if major == 1 {
-        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    } else {
-        out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-    }
-    out.extend_from_slice(header.as_bytes());
-    out.extend_from_slice(data);
-    out
 }
 
 fn npy_cases(g: &mut Gen, base: &Base) {
@@ -1659,7 +1640,7 @@ fn npy_cases(g: &mut Gen, base: &Base) {
     put(
         g,
         "version 2".into(),
-        npy_header(
+        matloc_data::images::npy_with_header(
             &format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}"),
             2,
             &f4(5.0),
@@ -1689,13 +1670,13 @@ fn npy_cases(g: &mut Gen, base: &Base) {
     put(
         g,
         "header not a dict".into(),
-        npy_header("[1, 2, 3]", 1, &f4(5.0)),
+        matloc_data::images::npy_with_header("[1, 2, 3]", 1, &f4(5.0)),
         true,
     );
     put(
         g,
         "header missing descr".into(),
-        npy_header(
+        matloc_data::images::npy_with_header(
             &format!("{{'fortran_order': False, 'shape': {shape}, }}"),
             1,
             &f4(5.0),
@@ -1705,7 +1686,7 @@ fn npy_cases(g: &mut Gen, base: &Base) {
     put(
         g,
         "header python code".into(),
-        npy_header(
+        matloc_data::images::npy_with_header(
             "{'descr': __import__('os').system('true'), 'fortran_order': False, 'shape': (1, 1), }",
             1,
             &f4(5.0),
@@ -1715,7 +1696,7 @@ fn npy_cases(g: &mut Gen, base: &Base) {
     put(
         g,
         "header invalid UTF-8".into(),
-        npy_header("{'descr': '<f4\u{fffd}', }", 1, &f4(5.0)),
+        matloc_data::images::npy_with_header("{'descr': '<f4\u{fffd}', }", 1, &f4(5.0)),
         true,
     );
     put(g, "empty file".into(), Vec::new(), true);
